@@ -1,0 +1,169 @@
+"""Turn a `--device` string ("keyboard,spacemouse,script:demo.json") into started devices.
+
+Spec words:
+  keyboard                      the keyboard (pynput, X11 / macOS / Windows)
+  spacemouse                    every SpaceMouse found, one per arm in turn
+  spacemouse:N[:OPTION...]      the N-th SpaceMouse (`teleop devices` lists them);
+                                OPTION: behind|facing (stance), toggle|hold (gripper),
+                                arm=K, right=ACTION, sensitivity=F, deadzone=F
+  script:FILE                   commands replayed from a JSON file
+  gizmo                         the browser's transform gizmo
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from devices.base import Device, DeviceError
+
+
+@dataclass
+class DeviceOptions:
+    """Settings shared by the devices a session opens (`teleop run` flags)."""
+
+    pos_speed: float = 0.15  # m/s for hold-to-move devices at full deflection
+    rot_speed: float = 0.8  # rad/s
+    n_arms: int = 1
+    stance: str = "behind"  # SpaceMouse axis mapping: "behind" the robot or "facing" it
+    gripper_mode: str = "toggle"  # SpaceMouse left button: "toggle" or "hold"
+    right_button: str = "reset"  # SpaceMouse right button: none|gripper|frame|reset|start|save|discard
+    sensitivity: float = 1.0  # SpaceMouse: multiplies both speeds
+    deadzone: float = 0.03  # SpaceMouse: fraction of full deflection read as zero
+
+
+def make_device(spec: str, options: DeviceOptions) -> Device:
+    """Build one device from its spec word; raises DeviceError for unknown words."""
+    name, _, arg = spec.partition(":")
+    name = name.strip().lower()
+    if name == "script":
+        from devices.script import ScriptDevice
+
+        if not arg:
+            raise DeviceError("script device needs a file: --device script:FILE.json")
+        return ScriptDevice(arg)
+    if name == "keyboard":
+        from devices.keyboard import KeyboardDevice
+
+        if arg:
+            raise DeviceError(f"keyboard takes no options (got {spec!r})")
+        return KeyboardDevice(pos_speed=options.pos_speed, rot_speed=options.rot_speed, n_arms=options.n_arms)
+    if name == "spacemouse":
+        return _spacemouse(arg, options)
+    # ---- gizmo (browser transform control): branch added by the web issue goes here ----
+    raise DeviceError(f"unknown device {spec!r} (known: keyboard, spacemouse[:N], gizmo, script:FILE)")
+
+
+def _spacemouse_options(arg: str, options: DeviceOptions) -> tuple[int | None, dict]:
+    """Parse "N:facing:hold:arm=1:..." into (index or None, SpaceMouseDevice keyword arguments)."""
+    index: int | None = None
+    kw: dict = {
+        "pos_speed": options.pos_speed,
+        "rot_speed": options.rot_speed,
+        "stance": options.stance,
+        "gripper_mode": options.gripper_mode,
+        "right_button": options.right_button,
+        "sensitivity": options.sensitivity,
+        "deadzone": options.deadzone,
+    }
+    for token in (t.strip().lower() for t in arg.split(":") if t.strip()):
+        key, eq, value = token.partition("=")
+        try:
+            if not eq and key.isdigit():
+                index = int(key)
+            elif not eq and key in ("behind", "facing"):
+                kw["stance"] = key
+            elif not eq and key in ("toggle", "hold"):
+                kw["gripper_mode"] = key
+            elif key in ("stance", "right"):
+                kw["stance" if key == "stance" else "right_button"] = value
+            elif key == "gripper":
+                kw["gripper_mode"] = value
+            elif key == "arm":
+                kw["arm"] = int(value)
+            elif key in ("sensitivity", "deadzone"):
+                kw[key] = float(value)
+            else:
+                raise ValueError
+        except ValueError:
+            raise DeviceError(
+                f"bad SpaceMouse option {token!r} (use N, behind|facing, toggle|hold, arm=K, right=ACTION, "
+                "sensitivity=F, deadzone=F)"
+            ) from None
+    return index, kw
+
+
+def _spacemouse(arg: str, options: DeviceOptions) -> Device:
+    from devices.spacemouse import SpaceMouseDevice, find_spacemice, open_hid, reopener
+
+    index, kw = _spacemouse_options(arg, options)
+    found = find_spacemice()
+    if not found:
+        raise DeviceError(
+            "no SpaceMouse found (no 3Dconnexion 6-DoF device on USB or a receiver); plug one in, "
+            "and see `teleop devices`"
+        )
+    index = index or 0
+    if index >= len(found):
+        raise DeviceError(f"spacemouse:{index} does not exist: {len(found)} SpaceMouse found (spacemouse:0..{len(found) - 1})")
+    info = found[index]
+    kw.setdefault("arm", index % max(options.n_arms, 1))
+    if not 0 <= kw["arm"] < max(options.n_arms, 1):
+        raise DeviceError(f"spacemouse:{index}: arm={kw['arm']} but the scene has {options.n_arms} arm(s)")
+    first_open = [True]
+    again = reopener(info, index)
+
+    def opener():
+        if first_open[0]:
+            first_open[0] = False
+            return open_hid(info)
+        return again()
+
+    return SpaceMouseDevice(opener, name=f"spacemouse:{index}", **kw)
+
+
+def _expand(word: str) -> list[str]:
+    """A bare "spacemouse" means every SpaceMouse found (two of them drive the two arms)."""
+    name, _, arg = word.partition(":")
+    if name.strip().lower() != "spacemouse":
+        return [word]
+    try:
+        index, _ = _spacemouse_options(arg, DeviceOptions())
+        if index is not None:
+            return [word]
+        from devices.spacemouse import find_spacemice
+
+        count = len(find_spacemice())
+    except DeviceError:
+        return [word]  # make_device reports it
+    if count <= 1:
+        return [word]
+    return [f"spacemouse:{i}" + (f":{arg}" if arg else "") for i in range(count)]
+
+
+def open_devices(spec: str, options: DeviceOptions) -> tuple[list[Device], list[str]]:
+    """Start every device in a comma list.
+
+    Returns the devices that started and one line per device that did not
+    (or that started with a caveat, such as a keyboard under Wayland), so that
+    a session can carry on with the rest. Raises DeviceError only when the
+    list names nothing usable at all.
+    """
+    started: list[Device] = []
+    problems: list[str] = []
+    words = [w.strip() for w in spec.split(",") if w.strip()]
+    if not words:
+        raise DeviceError("no device given: --device needs at least one of keyboard, spacemouse, gizmo, script:FILE")
+    for word in [w for word in words for w in _expand(word)]:
+        try:
+            device = make_device(word, options)
+            device.start()
+        except (DeviceError, OSError) as exc:
+            problems.append(f"{word}: {exc}")
+            continue
+        started.append(device)
+        warning = getattr(device, "warning", "")
+        if warning:
+            problems.append(f"{word}: {warning}")
+    if not started:
+        raise DeviceError("no device could start: " + "; ".join(problems))
+    return started, problems

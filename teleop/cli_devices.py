@@ -1,0 +1,55 @@
+"""`teleop devices [--json]`: list the input devices this machine offers, and why not for the rest."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register this module's subcommands."""
+    p = sub.add_parser(
+        "devices",
+        help="list input devices (keyboard, SpaceMouse, gizmo, script) and why any is unavailable",
+        description="List every input device teleop can see or not see, and why; then the keyboard "
+        "bindings and the SpaceMouse setup.",
+    )
+    p.add_argument("--json", action="store_true", help="print a JSON list of {name, kind, available, reason, ...}")
+    p.set_defaults(func=run_devices)
+
+
+def help_text() -> str:
+    """Keyboard bindings and SpaceMouse mapping/setup, as printed under the device table."""
+    from devices.keyboard import bindings_table
+    from devices.spacemouse import RIGHT_BUTTON_ACTIONS, UDEV_HOWTO
+    from devices.spacemouse_protocol import STANCE_HELP
+
+    stances = "\n".join(f"  {name:7} {text}" for name, text in STANCE_HELP.items())
+    return (
+        "Keyboard (hold a key to move at --pos-speed / --rot-speed; world frame: x away from the base, z up):\n"
+        f"{bindings_table()}\n\n"
+        "SpaceMouse (--device spacemouse[:N][:behind|facing][:toggle|hold][:right=ACTION]):\n"
+        f"{stances}\n"
+        "  left button: gripper (toggle, or hold = closed while held); "
+        f"right button: {'|'.join(RIGHT_BUTTON_ACTIONS)} (default reset)\n"
+        "  Two SpaceMice drive arms 0 and 1 of a bimanual scene.\n"
+        "  Linux access without root (then replug):\n"
+        + "\n".join("    " + line for line in UDEV_HOWTO.splitlines())
+        + "\n  If spacenavd holds it: sudo systemctl stop spacenavd"
+    )
+
+
+def run_devices(args: argparse.Namespace) -> int:
+    from devices.discovery import discover
+
+    rows = discover()
+    if args.json:
+        print(json.dumps([r.to_dict() for r in rows], indent=2))
+        return 0
+    width = max(len(r.name) for r in rows)
+    print(f"{'NAME'.ljust(width)}  {'KIND':10}  {'AVAILABLE':9}  REASON")
+    for r in rows:
+        print(f"{r.name.ljust(width)}  {r.kind:10}  {'yes' if r.available else 'no':9}  {r.reason}")
+    print()
+    print(help_text())
+    return 0
