@@ -1,0 +1,23 @@
+"""Recording demonstrations: one episode per file, MCAP (live, Foxglove) and/or HDF5 (robomimic).
+
+The control thread calls `EpisodeWriter.append(StepRecord)` (a row copy and a
+deque push); a writer thread encodes and flushes every 0.1 s. The file layout is
+documented in `replay.schema`, which readers share. `recover_mcap` and
+`convert_episode` rewrite files for `teleop inspect --recover` / `teleop convert`.
+"""
+
+from recorder.convert import convert_episode, recover_mcap, write_episode
+from recorder.step import StepRecord
+from recorder.writer import FORMATS, EpisodeWriter, RecorderError, episode_path, next_episode_index
+
+__all__ = [
+    "FORMATS",
+    "EpisodeWriter",
+    "RecorderError",
+    "StepRecord",
+    "convert_episode",
+    "episode_path",
+    "next_episode_index",
+    "recover_mcap",
+    "write_episode",
+]

@@ -1,0 +1,44 @@
+"""`teleop` command line: one subcommand per job, each defined next to what it drives.
+
+Every user error ends as one line on stderr and exit code 2 (UsageError);
+tracebacks are for bugs only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from teleop import cli_devices, cli_export, cli_record, cli_run, cli_serve
+from teleop.errors import UsageError
+
+MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="teleop",
+        description="Teleoperate MuJoCo robot arms, record demonstrations, replay them exactly, export datasets.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for module in MODULES:
+        module.add_parsers(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        print(f"teleop {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"teleop {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

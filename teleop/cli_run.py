@@ -1,0 +1,229 @@
+"""`teleop robots`, `teleop scenes`, `teleop run` (headless session) and `teleop bench`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+from teleop.errors import UsageError
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("robots", help="list the built-in robots")
+    p.set_defaults(func=cmd_robots)
+    p = sub.add_parser("scenes", help="list the built-in task scenes")
+    p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("run", help="run a session headless (scripted or keyboard/SpaceMouse) and print a summary")
+    add_session_args(p)
+    p.add_argument("--device", required=True, help="comma list: script:FILE.json, keyboard, spacemouse")
+    p.add_argument("--seconds", type=float, default=None, help="simulated seconds per episode (default: until the script ends)")
+    p.add_argument("--episodes", type=int, default=1, help="episodes to run, seeds seed, seed+1, ... (default 1)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("bench", help="measure the speed figures the issues name")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (rougher figures)")
+    p.add_argument("--only", default=None, help="comma list of bench modules to run (control, recording, web, export, devices)")
+    p.set_defaults(func=cmd_bench)
+
+
+def add_session_args(p: argparse.ArgumentParser) -> None:
+    """Flags shared by `run` and `serve`."""
+    p.add_argument("--scene", default="lift", help="task scene (default lift; see `teleop scenes`)")
+    p.add_argument("--robot", default="panda", help="built-in robot name or PATH.toml (default panda)")
+    p.add_argument("--seed", type=int, default=0, help="object placement seed (default 0)")
+    p.add_argument("--control-hz", type=float, default=30.0, help="control rate in Hz (default 30)")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR", help="record episodes into DIR")
+    p.add_argument("--format", default="mcap", choices=("mcap", "hdf5", "both"), help="recording format (default mcap)")
+    p.add_argument("--no-verify", action="store_true", help="skip the exact-replay check after each saved episode")
+    p.add_argument("--pos-speed", type=float, default=0.15, help="hold-to-move speed, m/s (default 0.15)")
+    p.add_argument("--rot-speed", type=float, default=0.8, help="hold-to-rotate speed, rad/s (default 0.8)")
+
+
+def cmd_robots(args: argparse.Namespace) -> int:
+    from scenes import BUILTIN_ROBOTS
+
+    width = max(len(n) for n in BUILTIN_ROBOTS)
+    for name, (summary, _) in BUILTIN_ROBOTS.items():
+        print(f"{name:<{width}}  {summary}")
+    return 0
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    from scenes import TASKS
+
+    width = max(len(n) for n in TASKS)
+    for name, task in TASKS.items():
+        arms = "bimanual only" if task.needs_bimanual else ("single-arm or bimanual" if task.allows_bimanual else "single-arm")
+        print(f"{name:<{width}}  {task.summary} ({arms})")
+    return 0
+
+
+def make_session(args: argparse.Namespace):
+    """A Session from the shared flags, with every user error as UsageError."""
+    from scenes import SceneError
+    from teleop.session import RecordOptions, Session
+
+    record = None
+    if args.record is not None:
+        if args.record.exists() and not args.record.is_dir():
+            raise UsageError(f"--record {args.record}: exists and is not a directory")
+        formats = ("mcap", "hdf5") if args.format == "both" else (args.format,)
+        record = RecordOptions(args.record, formats, verify=not args.no_verify)
+    try:
+        return Session(scene=args.scene, robot=args.robot, seed=args.seed, control_hz=args.control_hz, record=record)
+    except SceneError as exc:
+        raise UsageError(str(exc)) from None
+    except ValueError as exc:
+        raise UsageError(str(exc).splitlines()[0]) from None
+
+
+def open_session_devices(spec: str, args: argparse.Namespace, n_arms: int, log=print):
+    from devices.base import DeviceError
+    from devices.registry import DeviceOptions, open_devices
+    from devices.script import ScriptError
+
+    if args.pos_speed <= 0 or args.rot_speed <= 0:
+        raise UsageError("--pos-speed and --rot-speed must be positive")
+    try:
+        devices, problems = open_devices(spec, DeviceOptions(pos_speed=args.pos_speed, rot_speed=args.rot_speed, n_arms=n_arms))
+    except ScriptError as exc:
+        raise UsageError(str(exc)) from None
+    except DeviceError as exc:
+        raise UsageError(str(exc)) from None
+    for line in problems:
+        log(f"device not started: {line}")
+    return devices
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from devices.base import DeviceError
+
+    if args.episodes < 1:
+        raise UsageError("--episodes must be at least 1")
+    if args.seconds is not None and args.seconds <= 0:
+        raise UsageError("--seconds must be positive")
+    log = (lambda m: print(m, file=sys.stderr)) if args.json else print
+    session = make_session(args)
+    devices = open_session_devices(args.device, args, session.n_arms, log=lambda m: print(m, file=sys.stderr))
+    scripted = all(d.kind == "script" for d in devices)
+    if args.seconds is None and not scripted:
+        log("running until Ctrl-C (give --seconds to stop by itself)")
+    # A second Ctrl-C during saving must not cut the file short: ignore it there.
+    episodes = []
+    wall_start = time.perf_counter()
+    interrupted = False
+    try:
+        for episode in range(args.episodes):
+            if episode > 0:
+                session.reset(args.seed + episode)
+            for d in devices:
+                if hasattr(d, "restart"):
+                    d.restart()
+            session.start_episode() if args.record else None
+            ik_before = session.ik_failures
+            t0 = time.perf_counter()
+            sim0 = session.time
+            while True:
+                if args.seconds is not None and session.time - sim0 >= args.seconds - 1e-9:
+                    break
+                if args.seconds is None and scripted and all(d.finished for d in devices):
+                    break
+                commands = []
+                for d in devices:
+                    commands.extend(d.poll(session, session.dt))
+                session.step(commands)
+                if not scripted:  # people drive in real time
+                    lag = (session.time - sim0) - (time.perf_counter() - t0)
+                    if lag > 0:
+                        time.sleep(lag)
+            success = session.success()
+            paths = session.save_episode() if args.record else []
+            episodes.append(
+                {
+                    "seed": session.seed,
+                    "steps": session.steps,
+                    "sim_seconds": round(session.time - sim0, 6),
+                    "success": success,
+                    "ik_failures": session.ik_failures - ik_before,
+                    "ee_tracking_error_mm": session.tracking_error_mm(),
+                    "files": [str(p) for p in paths],
+                    **({"replay_bit_exact": session.last_verify.bit_exact} if paths and session.last_verify is not None else {}),
+                }
+            )
+    except KeyboardInterrupt:
+        interrupted = True
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        session.close()
+        log("interrupted: the episode in progress was saved, marked incomplete")
+    except DeviceError as exc:
+        session.close()
+        raise UsageError(str(exc)) from None
+    finally:
+        for d in devices:
+            d.close()
+    wall = time.perf_counter() - wall_start
+    summary = {
+        "scene": args.scene,
+        "robot": session.robot.name,
+        "seed": args.seed,
+        "control_hz": session.control_hz,
+        "episodes": len(episodes),
+        "steps": sum(e["steps"] for e in episodes),
+        "sim_seconds": round(sum(e["sim_seconds"] for e in episodes), 6),
+        "wall_seconds": round(wall, 4),
+        "success": bool(episodes) and all(e["success"] for e in episodes),
+        "ik_failures": session.ik_failures,
+        "ee_tracking_error_mm": episodes[-1]["ee_tracking_error_mm"] if len(episodes) == 1 else _merged_error(episodes),
+        "targets_clamped": session.clamped,
+        "interrupted": interrupted,
+        "devices": [d.name for d in devices],
+    }
+    if args.record:
+        summary["files"] = [f for e in episodes for f in e["files"]]
+        summary["record_dir"] = str(args.record)
+    if len(episodes) > 1:
+        summary["per_episode"] = episodes
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        err = summary["ee_tracking_error_mm"]
+        print(
+            f"{summary['robot']} on {summary['scene']}: {summary['steps']} steps, {summary['sim_seconds']:.2f} s simulated "
+            f"in {summary['wall_seconds']:.2f} s, success={summary['success']}, IK failures={summary['ik_failures']}, "
+            f"EE tracking error median {err['median']} mm / max {err['max']} mm"
+        )
+        for f in summary.get("files", []):
+            print(f"recorded {f}")
+        for m in session.messages:
+            print(f"note: {m}")
+    return 130 if interrupted else 0
+
+
+def _merged_error(episodes: list[dict]) -> dict:
+    meds = [e["ee_tracking_error_mm"]["median"] for e in episodes if e["ee_tracking_error_mm"]["median"] is not None]
+    maxs = [e["ee_tracking_error_mm"]["max"] for e in episodes if e["ee_tracking_error_mm"]["max"] is not None]
+    if not meds:
+        return {"median": None, "max": None}
+    import numpy as np
+
+    return {"median": round(float(np.median(meds)), 3), "max": round(float(max(maxs)), 3)}
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from bench.run import run_all
+
+    only = [w.strip() for w in args.only.split(",")] if args.only else None
+    results = run_all(quick=args.quick, only=only, progress=not args.json)
+    if args.json:
+        print(json.dumps(results))
+    else:
+        for key, value in results.items():
+            print(f"{key:<28} {value}")
+    return 0

@@ -1,0 +1,112 @@
+"""Differential IK for one arm with mink, on an arm-only copy of the scene.
+
+The IK model is the scene with every joint but this arm's removed (objects,
+fingers and the other arm welded in place), so each solve works on exactly
+the arm's degrees of freedom: a 7-DoF Panda solve is a 7-variable QP, not 15.
+Limits are built once (mink rebuilds them on every call when given none).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import mink
+import numpy as np
+
+from scenes import ArmSpec
+
+POSTURE_COST = 1e-2
+LM_DAMPING = 1e-6
+SOLVER_DAMPING = 1e-4
+MAX_JOINT_SPEED = 2.5  # rad/s (Panda's slowest joints manage 2.175; wrists 2.61)
+
+
+def arm_only_model(xml: str, assets: dict[str, bytes], arm: ArmSpec) -> mujoco.MjModel:
+    """Compile the scene with only `arm`'s joints left movable."""
+    spec = mujoco.MjSpec.from_string(xml, assets)
+    for kind in (spec.actuators, spec.tendons, spec.equalities, spec.sensors, spec.keys):
+        for element in list(kind):
+            spec.delete(element)
+    keep = set(arm.joints)
+    for joint in list(spec.joints):
+        if joint.name not in keep:
+            spec.delete(joint)
+    model = spec.compile()
+    # Order of the kept joints in the IK model must match the arm's joint list.
+    order = [model.joint(name).qposadr[0] for name in arm.joints]
+    if order != list(range(len(arm.joints))):
+        raise ValueError(f"arm joints {arm.joints} are not in kinematic order in the model")
+    return model
+
+
+class ArmIK:
+    """Joint targets for one arm that bring its EE site to a world pose."""
+
+    def __init__(self, xml: str, assets: dict[str, bytes], arm: ArmSpec, dt: float, table_geom: str | None = "table"):
+        self.arm = arm
+        self.dt = dt
+        self.model = arm_only_model(xml, assets, arm)
+        self.configuration = mink.Configuration(self.model)
+        self.frame_task = mink.FrameTask(
+            arm.ee_site, "site", position_cost=1.0, orientation_cost=arm.orientation_cost, lm_damping=LM_DAMPING
+        )
+        self.posture_task = mink.PostureTask(self.model, cost=POSTURE_COST)
+        self.tasks = [self.frame_task, self.posture_task]
+        self.limits: list = [
+            mink.ConfigurationLimit(self.model),
+            mink.VelocityLimit(self.model, {name: MAX_JOINT_SPEED for name in arm.joints}),
+        ]
+        hand_geoms = self._hand_geoms()
+        if table_geom and hand_geoms and mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, table_geom) >= 0:
+            self.limits.append(
+                mink.CollisionAvoidanceLimit(
+                    self.model, [(hand_geoms, [table_geom])], minimum_distance_from_collisions=0.004,
+                    collision_detection_distance=0.03,
+                )
+            )
+        self.home = np.asarray(arm.home, dtype=float)
+        self.reset(self.home)
+
+    def _hand_geoms(self) -> list[str]:
+        """Named or anonymous geoms of the hand bodies, as mink wants: geom names or ids."""
+        geoms: list = []
+        for body in self.arm.hand_bodies:
+            bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)
+            if bid < 0:
+                continue
+            for g in range(self.model.ngeom):
+                if self.model.geom_bodyid[g] == bid and self.model.geom_contype[g] | self.model.geom_conaffinity[g]:
+                    geoms.append(g)
+        return geoms
+
+    def reset(self, q: np.ndarray) -> None:
+        """Start from joint positions `q` with the target at the resulting EE pose."""
+        self.q = np.array(q, dtype=float)
+        self.configuration.update(self.q)
+        self.posture_task.set_target(self.home)
+        self.frame_task.set_target(self.configuration.get_transform_frame_to_world(self.arm.ee_site, "site"))
+
+    def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """EE pose the current IK solution reaches (position, wxyz)."""
+        T = self.configuration.get_transform_frame_to_world(self.arm.ee_site, "site")
+        return T.translation().copy(), T.rotation().wxyz.copy()
+
+    def solve(self, pos: np.ndarray, quat: np.ndarray) -> bool:
+        """One IK step toward (pos, wxyz quat); False (and q unchanged) if it failed."""
+        target = mink.SE3.from_rotation_and_translation(mink.SO3(wxyz=np.asarray(quat, dtype=float)), np.asarray(pos, dtype=float))
+        self.frame_task.set_target(target)
+        try:
+            velocity = mink.solve_ik(
+                self.configuration, self.tasks, self.dt, "daqp", damping=SOLVER_DAMPING, limits=self.limits
+            )
+        except Exception:  # infeasible QP or solver failure: hold the last good solution
+            self.configuration.update(self.q)
+            return False
+        if not np.all(np.isfinite(velocity)):
+            return False
+        self.configuration.integrate_inplace(velocity, self.dt)
+        q = self.configuration.q
+        if not np.all(np.isfinite(q)):
+            self.configuration.update(self.q)
+            return False
+        self.q = q.copy()
+        return True
