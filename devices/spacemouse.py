@@ -114,6 +114,8 @@ def _path_str(info: dict) -> str:
 def open_problem(info: dict) -> str | None:
     """Why this process cannot open the device, checked without opening it (Linux hidraw)."""
     path = _path_str(info)
+    if path.startswith("/dev/") and not os.path.exists(path):
+        return f"{path} ({info.get('model', 'SpaceMouse')}) is gone: unplugged?"
     if path.startswith("/dev/") and not os.access(path, os.R_OK | os.W_OK):
         return (
             f"permission denied on {path} ({info.get('model', 'SpaceMouse')}): add the udev rule "
