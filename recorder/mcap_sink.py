@@ -1,0 +1,187 @@
+"""MCAP episode file: the live format, readable in Foxglove and after a crash.
+
+Channels (all messages of one step share log_time = episode start wall clock +
+sim time since the first step, so the timeline runs at sim rate):
+  /teleop/step        teleop.step.v1 binary rows (see replay.schema)
+  /teleop/commands    JSON {"step", "commands"} when a device sent anything
+  /tf/armN/ee         foxglove.FrameTransform world -> armN/ee (actual pose)
+  /tf/armN/ee_target  foxglove.FrameTransform world -> armN/ee_target
+  /joint_states       teleop.JointState JSON {timestamp, name, position, velocity}
+Foxglove quaternions are xyzw; the session's are wxyz, so they are reordered here.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from replay import schema
+
+_TIME_SCHEMA = {
+    "type": "object",
+    "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+}
+_XYZ = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
+_XYZW = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}
+FRAME_TRANSFORM_JSONSCHEMA = {
+    "title": "foxglove.FrameTransform",
+    "description": "A transform between two reference frames in 3D space",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME_SCHEMA,
+        "parent_frame_id": {"type": "string"},
+        "child_frame_id": {"type": "string"},
+        "translation": _XYZ,
+        "rotation": _XYZW,
+    },
+}
+JOINT_STATE_JSONSCHEMA = {
+    "title": schema.JOINT_STATE_SCHEMA,
+    "description": "Positions (m or rad) and velocities of the model's hinge and slide joints",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME_SCHEMA,
+        "name": {"type": "array", "items": {"type": "string"}},
+        "position": {"type": "array", "items": {"type": "number"}},
+        "velocity": {"type": "array", "items": {"type": "number"}},
+    },
+}
+COMMANDS_JSONSCHEMA = {
+    "title": "teleop.Commands",
+    "description": "Device commands received during one control step",
+    "type": "object",
+    "properties": {"step": {"type": "integer"}, "commands": {"type": "array"}},
+}
+
+# A chunk is cut at every periodic flush anyway; this only caps memory.
+CHUNK_SIZE = 256 * 1024
+
+
+@functools.lru_cache(maxsize=8)
+def _joint_map(model_xml: str, asset_items: tuple) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Names and qpos/qvel indices of the 1-dof joints (arm and fingers).
+
+    Compiled once per model per process; free joints (objects) are left out.
+    """
+    try:
+        model = mujoco.MjModel.from_xml_string(model_xml, dict(asset_items))
+    except Exception:  # noqa: BLE001 - the channel is a convenience; fall back to raw qpos
+        return [], np.zeros(0, int), np.zeros(0, int)
+    names, qi, vi = [], [], []
+    for j in range(model.njnt):
+        if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
+            qi.append(model.jnt_qposadr[j])
+            vi.append(model.jnt_dofadr[j])
+    return names, np.array(qi, int), np.array(vi, int)
+
+
+def _stamp(ns: int) -> dict:
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+class McapSink:
+    """Writes an episode's rows to an MCAP file, flushed to the OS on demand."""
+
+    format = "mcap"
+
+    def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], t0_ns: int | None = None):
+        self.path = path
+        self._t0_ns = time.time_ns() if t0_ns is None else t0_ns
+        self._file = open(path, "xb")  # never overwrite
+        try:
+            self._setup(meta, layout)
+        except BaseException:
+            self._file.close()
+            path.unlink(missing_ok=True)
+            raise
+
+    def _setup(self, meta: dict, layout: list[tuple[str, int]]) -> None:
+        self._layout = layout
+        self._cols = schema.slices(layout)
+        self._n_arms = schema.n_arms_of(meta)
+        self._sim_t0: float | None = None
+        self._count = 0
+        w = self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        w.start(profile="", library="teleop-recorder")
+        w.add_metadata(schema.META_NAME, schema.encode_meta(meta))
+        w.add_attachment(0, 0, schema.MODEL_ATTACHMENT, "application/xml", meta["model_xml"].encode())
+        for name, data in (meta.get("assets") or {}).items():
+            w.add_attachment(0, 0, schema.ASSET_PREFIX + name, "application/octet-stream", bytes(data))
+
+        def json_channel(topic: str, schema_name: str, body: dict) -> int:
+            sid = w.register_schema(schema_name, "jsonschema", json.dumps(body).encode())
+            return w.register_channel(topic, "json", sid)
+
+        step_sid = w.register_schema(schema.STEP_ENCODING, "", b"")
+        self._step_ch = w.register_channel(
+            schema.STEP_TOPIC,
+            schema.STEP_ENCODING,
+            step_sid,
+            {"layout": json.dumps(layout), "dtype": "<f8"},
+        )
+        self._cmd_ch = json_channel(schema.COMMANDS_TOPIC, "teleop.Commands", COMMANDS_JSONSCHEMA)
+        self._tf_ch = []
+        for arm in range(self._n_arms):
+            for kind in ("ee", "ee_target"):
+                ch = json_channel(f"/tf/arm{arm}/{kind}", schema.FRAME_TRANSFORM_SCHEMA, FRAME_TRANSFORM_JSONSCHEMA)
+                self._tf_ch.append((ch, f"arm{arm}/{kind}", "ee_pose" if kind == "ee" else "ee_target", arm))
+        self._js_ch = json_channel(schema.JOINT_STATES_TOPIC, schema.JOINT_STATE_SCHEMA, JOINT_STATE_JSONSCHEMA)
+        assets = tuple(sorted((k, bytes(v)) for k, v in (meta.get("assets") or {}).items()))
+        names, qi, vi = _joint_map(meta["model_xml"], assets)
+        if not names:
+            names = [f"qpos{i}" for i in range(int(meta["nq"]))]
+            qi = vi = None
+        self._joint_names, self._qi, self._vi = names, qi, vi
+        self.flush()
+
+    def write(self, rows: np.ndarray, commands: list[list[dict]]) -> None:
+        """Append rows (n, width); commands[i] belongs to rows[i]."""
+        w, cols = self._writer, self._cols
+        if self._sim_t0 is None and len(rows):
+            self._sim_t0 = float(rows[0, 0])
+        for row, cmds in zip(rows, commands):
+            k = self._count
+            self._count += 1
+            ns = self._t0_ns + int(round((row[0] - self._sim_t0) * 1e9))
+            w.add_message(self._step_ch, ns, row.tobytes(), ns, sequence=k)
+            stamp = _stamp(ns)
+            if cmds:
+                w.add_message(self._cmd_ch, ns, json.dumps({"step": k, "commands": cmds}).encode(), ns, k)
+            for ch, frame, field, arm in self._tf_ch:
+                p = row[cols[field]][arm * 7 : arm * 7 + 7].tolist()
+                msg = {
+                    "timestamp": stamp,
+                    "parent_frame_id": schema.WORLD_FRAME,
+                    "child_frame_id": frame,
+                    "translation": {"x": p[0], "y": p[1], "z": p[2]},
+                    "rotation": {"x": p[4], "y": p[5], "z": p[6], "w": p[3]},
+                }
+                w.add_message(ch, ns, json.dumps(msg).encode(), ns, k)
+            qpos, qvel = row[cols["qpos"]], row[cols["qvel"]]
+            if self._qi is not None:
+                pos, vel = qpos[self._qi].tolist(), qvel[self._vi].tolist()
+            else:
+                pos, vel = qpos.tolist(), []
+            msg = {"timestamp": stamp, "name": self._joint_names, "position": pos, "velocity": vel}
+            w.add_message(self._js_ch, ns, json.dumps(msg).encode(), ns, k)
+
+    def flush(self) -> None:
+        """Close the open chunk and hand everything to the OS (survives kill -9)."""
+        self._writer.flush()
+
+    def finish(self, end_meta: dict) -> None:
+        self._writer.add_metadata(schema.META_END_NAME, schema.encode_meta(end_meta))
+        self._writer.finish()
+        self._file.close()
+
+    def abort(self) -> None:
+        """Close the handle without a footer (used before deleting the file)."""
+        if not self._file.closed:
+            self._file.close()

@@ -1,0 +1,198 @@
+"""EpisodeWriter: cheap append on the control thread, encoding and IO on a writer thread.
+
+The control loop only packs a step into one float64 row and pushes it on a deque
+(a few microseconds). A daemon thread drains the deque every FLUSH_PERIOD
+seconds, encodes the rows into every format and flushes the files to the OS, so
+a kill -9 loses at most about FLUSH_PERIOD plus one batch's write time.
+An episode left open at interpreter exit (Ctrl-C, an exception) is closed as
+incomplete by an atexit hook, so what was recorded is kept.
+"""
+
+from __future__ import annotations
+
+import atexit
+import re
+import threading
+import time
+import weakref
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from recorder.hdf5_sink import Hdf5Sink
+from recorder.mcap_sink import McapSink
+from recorder.step import StepRecord, pack
+from replay import schema
+
+FORMATS = ("mcap", "hdf5")
+SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
+FLUSH_PERIOD = 0.1
+_EPISODE_RE = re.compile(r"^episode_(\d+)\.(mcap|hdf5)$")
+_open_writers: "weakref.WeakSet[EpisodeWriter]" = weakref.WeakSet()
+
+
+class RecorderError(RuntimeError):
+    """Recording failed (bad step shape, disk full, ...); the message is one line."""
+
+
+def episode_path(directory: Path, index: int, fmt: str) -> Path:
+    return Path(directory) / f"episode_{index:06d}{SUFFIX[fmt]}"
+
+
+def next_episode_index(directory: Path) -> int:
+    """One past the highest episode index in `directory` (0 when none).
+
+    Never reuses a gap, so new episodes always sort after older ones.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return 0
+    found = [int(m.group(1)) for p in directory.iterdir() if (m := _EPISODE_RE.match(p.name))]
+    return max(found) + 1 if found else 0
+
+
+def _check_meta(meta: dict) -> None:
+    missing = [k for k in ("model_xml", "nstate", "nq", "nv", "nu") if k not in meta]
+    if missing:
+        raise RecorderError(f"episode metadata lacks {', '.join(missing)}")
+
+
+class EpisodeWriter:
+    """Records one episode into directory/episode_{index:06d}.{mcap,hdf5}."""
+
+    def __init__(self, directory: Path, index: int, formats: Sequence[str], meta: dict):
+        formats = list(dict.fromkeys(formats))
+        bad = [f for f in formats if f not in FORMATS]
+        if bad or not formats:
+            raise RecorderError(f"formats must be among {FORMATS}, got {list(formats)}")
+        _check_meta(meta)
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.index = index
+        meta = dict(meta)
+        meta.setdefault("schema_version", schema.SCHEMA_VERSION)
+        meta.setdefault("episode_index", index)
+        meta.setdefault("substeps", 1)
+        meta["n_arms"] = schema.n_arms_of(meta)
+        meta["success"], meta["complete"] = False, False
+        layout = schema.layout_from_meta(meta)
+        meta["step_layout"] = layout
+        self.meta = meta
+        self._width = schema.row_width(layout)
+        self._sinks: list[McapSink | Hdf5Sink] = []
+        for fmt in formats:
+            path = episode_path(self.directory, index, fmt)
+            try:
+                self._sinks.append((McapSink if fmt == "mcap" else Hdf5Sink)(path, meta, layout))
+            except FileExistsError:
+                self._drop_files()
+                raise RecorderError(f"{path}: episode file already exists") from None
+            except BaseException:
+                self._drop_files()
+                raise
+        self.steps = 0
+        self._queue: deque[tuple[np.ndarray, list[dict]]] = deque()
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"episode-writer-{index}", daemon=True)
+        self._thread.start()
+        _open_writers.add(self)
+
+    @property
+    def paths(self) -> list[Path]:
+        return [s.path for s in self._sinks]
+
+    def append(self, step: StepRecord) -> None:
+        """Queue one step; encoding and IO happen on the writer thread."""
+        if self._closed or self._error is not None:
+            raise RecorderError(self._why_stopped())
+        row = pack(step)
+        if row.shape[0] != self._width:
+            raise RecorderError(f"step has {row.shape[0]} numbers, the episode layout needs {self._width}")
+        self._queue.append((row, step.commands))
+        self.steps += 1
+
+    def close(self, success: bool, complete: bool) -> list[Path]:
+        """Write what is queued, mark success/complete, finish the files."""
+        if self._closed:
+            return self.paths
+        self._shutdown()
+        if self._error is not None:
+            self._abort_sinks()
+            raise RecorderError(self._why_stopped())
+        end = {"success": bool(success), "complete": bool(complete), "steps": self.steps}
+        self.meta.update(end)
+        for sink in self._sinks:
+            sink.finish(end)
+        return self.paths
+
+    def discard(self) -> None:
+        """Stop and delete this episode's files."""
+        if not self._closed:
+            self._shutdown()
+        self._drop_files()
+
+    # -- internals -------------------------------------------------------
+
+    def _why_stopped(self) -> str:
+        if self._error is not None:
+            return f"episode {self.index}: writer failed: {self._error}"
+        return f"episode {self.index} is already closed"
+
+    def _shutdown(self) -> None:
+        self._closed = True
+        _open_writers.discard(self)
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(FLUSH_PERIOD):
+                self._drain()
+            self._drain()
+        except BaseException as exc:  # noqa: BLE001 - reported to the caller by append/close
+            self._error = exc
+
+    def _drain(self) -> None:
+        q = self._queue
+        n = len(q)
+        if not n:
+            return
+        items = [q.popleft() for _ in range(n)]
+        rows = np.stack([r for r, _ in items])
+        commands = [c for _, c in items]
+        for sink in self._sinks:
+            sink.write(rows, commands)
+            sink.flush()
+            time.sleep(0)  # let the control thread have the GIL between sinks
+
+    def _abort_sinks(self) -> None:
+        for sink in self._sinks:
+            sink.abort()
+
+    def _drop_files(self) -> None:
+        self._abort_sinks()
+        for sink in self._sinks:
+            sink.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> "EpisodeWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close(success=False, complete=True)
+        elif not self._closed:
+            self.close(success=False, complete=False)
+
+
+@atexit.register
+def _close_open_writers() -> None:
+    """Interpreter exiting with an episode open: keep it, marked incomplete."""
+    for writer in list(_open_writers):
+        try:
+            writer.close(success=False, complete=False)
+        except Exception:  # noqa: BLE001 - exiting anyway; the file stays readable as truncated
+            pass

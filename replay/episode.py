@@ -1,0 +1,338 @@
+"""Load a recorded episode (MCAP or HDF5) into arrays, whatever state the file was left in.
+
+Every problem with a file becomes an EpisodeError whose one-line message names
+the file and what is wrong, so the CLI can print it as is.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from mcap.records import Attachment, Channel, Message, Metadata
+
+from replay import schema
+from replay.mcap_read import McapScan, iter_records
+
+EPISODE_SUFFIXES = (".mcap", ".hdf5", ".h5")
+
+
+class EpisodeError(ValueError):
+    """An episode file is missing, unreadable or inconsistent; the message is one line."""
+
+
+@dataclass
+class Episode:
+    """One recorded episode, all steps in memory (T rows)."""
+
+    path: Path
+    format: str  # "mcap" | "hdf5"
+    meta: dict  # recording metadata incl. model_xml, assets, success, complete
+    time: np.ndarray  # (T,)
+    state: np.ndarray  # (T, nstate) mjSTATE_INTEGRATION before each step
+    ctrl: np.ndarray  # (T, nu)
+    ee_target: np.ndarray  # (T, n_arms, 7) xyz + quat wxyz
+    ee_pose: np.ndarray  # (T, n_arms, 7)
+    qpos: np.ndarray  # (T, nq)
+    qvel: np.ndarray  # (T, nv)
+    gripper: np.ndarray  # (T, n_arms)
+    commands: list[list[dict]]
+    truncated: bool  # read from a file cut short (no footer / writer never closed it)
+    wall_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truncated_reason: str = ""
+
+    @property
+    def steps(self) -> int:
+        return len(self.time)
+
+    @property
+    def substeps(self) -> int:
+        return int(self.meta.get("substeps", 1))
+
+    @property
+    def seconds(self) -> float:
+        """Simulated duration covered by the recorded steps."""
+        dt = float(self.meta.get("timestep", 0.0)) * self.substeps
+        return self.steps * dt if dt > 0 else float(self.time[-1] - self.time[0]) if self.steps else 0.0
+
+    def build_model(self) -> mujoco.MjModel:
+        """Compile the recorded model XML with its assets, checked against the recorded state size."""
+        xml = self.meta.get("model_xml")
+        if not xml:
+            raise EpisodeError(f"{self.path}: no model XML recorded")
+        try:
+            model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.get("assets") or {}))
+        except Exception as exc:  # noqa: BLE001 - mujoco raises ValueError/Exception variants
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise EpisodeError(f"{self.path}: recorded model XML does not compile: {first}") from None
+        timestep = self.meta.get("timestep")
+        if timestep:
+            model.opt.timestep = float(timestep)
+        need = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION)
+        if self.state.shape[1] != need:
+            raise EpisodeError(
+                f"{self.path}: recorded state vectors have {self.state.shape[1]} values, "
+                f"the recorded model needs {need}"
+            )
+        for name, arr, size in (("ctrl", self.ctrl, model.nu), ("qpos", self.qpos, model.nq), ("qvel", self.qvel, model.nv)):
+            if arr.shape[1] != size:
+                raise EpisodeError(f"{self.path}: recorded {name} has {arr.shape[1]} values, the model needs {size}")
+        return model
+
+
+def sniff_format(path: Path) -> str:
+    """'mcap' or 'hdf5' from the file's magic bytes (suffixes lie)."""
+    path = Path(path)
+    if not path.exists():
+        raise EpisodeError(f"{path}: no such file")
+    if path.is_dir():
+        raise EpisodeError(f"{path}: is a directory, not an episode file")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        raise EpisodeError(f"{path}: cannot read: {exc.strerror}") from None
+    if head == schema.MCAP_MAGIC:
+        return "mcap"
+    if head == schema.HDF5_MAGIC:
+        return "hdf5"
+    raise EpisodeError(f"{path}: not an MCAP or HDF5 file")
+
+
+def load_episode(path: str | Path) -> Episode:
+    """Read an episode; a crash-truncated file loads with truncated=True."""
+    path = Path(path)
+    fmt = sniff_format(path)
+    return _load_mcap(path) if fmt == "mcap" else _load_hdf5(path)
+
+
+def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
+    """Expand directories into their episode files, preferring .mcap when both exist."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            by_stem: dict[str, Path] = {}
+            for f in sorted(p.iterdir()):
+                if f.is_file() and f.suffix in EPISODE_SUFFIXES:
+                    if f.stem not in by_stem or f.suffix == ".mcap":
+                        by_stem[f.stem] = f
+            out.extend(by_stem[s] for s in sorted(by_stem))
+        elif p.exists():
+            out.append(p)
+        else:
+            raise EpisodeError(f"{p}: no such file or directory")
+    return out
+
+
+# -- MCAP ------------------------------------------------------------------
+
+
+def _load_mcap(path: Path) -> Episode:
+    scan = McapScan()
+    meta: dict | None = None
+    end: dict = {}
+    assets: dict[str, bytes] = {}
+    model_xml: str | None = None
+    channels: dict[int, str] = {}
+    step_msgs: list[tuple[int, bytes]] = []
+    commands: dict[int, list[dict]] = {}
+    for rec in iter_records(path, scan):
+        if isinstance(rec, Message):
+            topic = channels.get(rec.channel_id)
+            if topic == schema.STEP_TOPIC:
+                step_msgs.append((rec.sequence, rec.data))
+            elif topic == schema.COMMANDS_TOPIC:
+                try:
+                    body = json.loads(rec.data)
+                    commands[int(body["step"])] = list(body["commands"])
+                except (ValueError, KeyError, TypeError):
+                    raise EpisodeError(f"{path}: bad message on {schema.COMMANDS_TOPIC}") from None
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec.topic
+        elif isinstance(rec, Metadata):
+            if rec.name == schema.META_NAME:
+                meta = schema.decode_meta(rec.metadata)
+            elif rec.name == schema.META_END_NAME:
+                end = schema.decode_meta(rec.metadata)
+        elif isinstance(rec, Attachment):
+            if rec.name == schema.MODEL_ATTACHMENT:
+                model_xml = rec.data.decode()
+            elif rec.name.startswith(schema.ASSET_PREFIX):
+                assets[rec.name[len(schema.ASSET_PREFIX) :]] = bytes(rec.data)
+    if meta is None:
+        why = f" (file cut short: {scan.reason})" if scan.truncated else ""
+        raise EpisodeError(f"{path}: not a teleop episode: no '{schema.META_NAME}' metadata{why}")
+    if model_xml is None:
+        raise EpisodeError(f"{path}: no '{schema.MODEL_ATTACHMENT}' attachment")
+    meta.update(model_xml=model_xml, assets=assets)
+    meta.update(end)
+    if not end:
+        meta["success"], meta["complete"] = False, False
+    layout = _layout(path, meta)
+    width = schema.row_width(layout)
+    step_msgs.sort(key=lambda m: m[0])
+    for i, (seq, data) in enumerate(step_msgs):
+        if seq != i:
+            raise EpisodeError(f"{path}: step {i} is missing from {schema.STEP_TOPIC}")
+        if len(data) != width * 8:
+            raise EpisodeError(
+                f"{path}: step {i} has {len(data) // 8} values, the recorded layout needs {width}"
+            )
+    raw = b"".join(d for _, d in step_msgs)
+    rows = np.frombuffer(raw, dtype="<f8").reshape(len(step_msgs), width)
+    cmds = [commands.get(k, []) for k in range(len(rows))]
+    return _episode(path, "mcap", meta, rows, layout, cmds, scan.truncated, scan.reason)
+
+
+def _layout(path: Path, meta: dict) -> list[tuple[str, int]]:
+    try:
+        expected = schema.layout_from_meta(meta)
+    except (KeyError, TypeError, ValueError):
+        raise EpisodeError(f"{path}: metadata lacks the sizes nstate/nq/nv/nu") from None
+    recorded = meta.get("step_layout")
+    if recorded is not None and [tuple(x) for x in recorded] != expected:
+        raise EpisodeError(f"{path}: recorded step layout does not match nstate/nq/nv/nu in the metadata")
+    return expected
+
+
+def _episode(path, fmt, meta, rows, layout, cmds, truncated, reason) -> Episode:
+    cols = schema.split_rows(np.ascontiguousarray(rows), layout, schema.n_arms_of(meta))
+    return Episode(
+        path=path,
+        format=fmt,
+        meta=meta,
+        time=cols["time"],
+        state=np.ascontiguousarray(cols["state"]),
+        ctrl=np.ascontiguousarray(cols["ctrl"]),
+        ee_target=np.ascontiguousarray(cols["ee_target"]),
+        ee_pose=np.ascontiguousarray(cols["ee_pose"]),
+        qpos=np.ascontiguousarray(cols["qpos"]),
+        qvel=np.ascontiguousarray(cols["qvel"]),
+        gripper=np.ascontiguousarray(cols["gripper"]),
+        commands=cmds,
+        truncated=truncated,
+        wall_time=np.ascontiguousarray(cols["wall_time"]),
+        truncated_reason=reason,
+    )
+
+
+# -- HDF5 ------------------------------------------------------------------
+
+_HDF5_FIELDS = {  # row field -> dataset under data/demo_0
+    "time": "time",
+    "wall_time": "wall_time",
+    "state": "states",
+    "ctrl": "ctrl",
+    "ee_target": "ee_target",
+    "ee_pose": "ee_pose",
+    "qpos": "obs/qpos",
+    "qvel": "obs/qvel",
+    "gripper": "gripper",
+}
+DEMO = "data/demo_0"
+
+
+def _load_hdf5(path: Path) -> Episode:
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else "unreadable"
+        raise EpisodeError(f"{path}: cannot open as HDF5 (truncated or corrupt?): {first}") from None
+    with f:
+        if DEMO not in f:
+            raise EpisodeError(f"{path}: missing group {DEMO}")
+        demo = f[DEMO]
+        if "teleop_meta" not in demo.attrs:
+            raise EpisodeError(f"{path}: not a teleop episode: {DEMO} has no 'teleop_meta' attribute")
+        if "model_file" not in demo.attrs:
+            raise EpisodeError(f"{path}: {DEMO} has no 'model_file' attribute")
+        try:
+            meta = json.loads(demo.attrs["teleop_meta"])
+        except ValueError:
+            raise EpisodeError(f"{path}: {DEMO} attribute 'teleop_meta' is not JSON") from None
+        meta["model_xml"] = _text(demo.attrs["model_file"])
+        assets = {}
+        if "assets" in demo:
+            for ds in demo["assets"].values():
+                assets[_text(ds.attrs["name"])] = ds[()].tobytes()
+        meta["assets"] = assets
+        closed = bool(demo.attrs.get("closed", True))
+        if not closed:
+            meta["success"], meta["complete"] = False, False
+        layout = _layout(path, meta)
+        sizes = dict(layout)
+        for name in list(_HDF5_FIELDS.values()) + ["commands"]:
+            if name not in demo:
+                raise EpisodeError(f"{path}: missing dataset {DEMO}/{name}")
+        lengths = [demo[n].shape[0] for n in list(_HDF5_FIELDS.values()) + ["commands"]]
+        n = min(lengths + [int(demo.attrs.get("num_samples", min(lengths)))])
+        try:
+            parts = []
+            for fld, size in layout:
+                arr = np.asarray(demo[_HDF5_FIELDS[fld]][:n], dtype=np.float64).reshape(n, -1)
+                if arr.shape[1] != size:
+                    raise EpisodeError(
+                        f"{path}: dataset {DEMO}/{_HDF5_FIELDS[fld]} has {arr.shape[1]} values per step, "
+                        f"the metadata says {sizes[fld]}"
+                    )
+                parts.append(arr)
+            raw_cmds = demo["commands"][:n]
+        except OSError as exc:
+            raise EpisodeError(f"{path}: cannot read datasets (truncated or corrupt?): {exc}") from None
+        cmds = []
+        for i, c in enumerate(raw_cmds):
+            try:
+                cmds.append(json.loads(_text(c)) if len(c) else [])
+            except ValueError:
+                raise EpisodeError(f"{path}: {DEMO}/commands[{i}] is not JSON") from None
+    rows = np.concatenate(parts, axis=1) if n else np.zeros((0, schema.row_width(layout)))
+    truncated = not closed
+    return _episode(path, "hdf5", meta, rows, layout, cmds, truncated, "" if closed else "writer never closed the file")
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def summarize(episode: Episode) -> dict:
+    """The `teleop inspect` object: what the file holds, without compiling the model."""
+    m = episode.meta
+    if episode.steps:
+        err = np.linalg.norm(episode.ee_target[:, :, :3] - episode.ee_pose[:, :, :3], axis=-1) * 1000.0
+        tracking = {"median": round(float(np.median(err)), 3), "max": round(float(np.max(err)), 3)}
+    else:
+        tracking = {"median": None, "max": None}
+    return {
+        "path": str(episode.path),
+        "format": episode.format,
+        "steps": episode.steps,
+        "seconds": round(episode.seconds, 6),
+        "success": bool(m.get("success", False)),
+        "complete": bool(m.get("complete", False)),
+        "truncated": episode.truncated,
+        "robot": m.get("robot"),
+        "scene": m.get("scene"),
+        "seed": m.get("seed"),
+        "task": m.get("task"),
+        "mujoco_version": m.get("mujoco_version"),
+        "machine": m.get("machine"),
+        "platform": m.get("platform"),
+        "control_hz": m.get("control_hz"),
+        "timestep": m.get("timestep"),
+        "substeps": m.get("substeps"),
+        "n_arms": schema.n_arms_of(m),
+        "nstate": m.get("nstate"),
+        "start_time": m.get("start_time"),
+        "episode_index": m.get("episode_index"),
+        "schema_version": m.get("schema_version"),
+        "steps_with_commands": sum(1 for c in episode.commands if c),
+        "ee_tracking_error_mm": tracking,
+    }
