@@ -81,6 +81,7 @@ class ArmIK:
     def reset(self, q: np.ndarray) -> None:
         """Start from joint positions `q` with the target at the resulting EE pose."""
         self.q = np.array(q, dtype=float)
+        self.velocity = np.zeros_like(self.q)
         self.configuration.update(self.q)
         self.posture_task.set_target(self.home)
         self.frame_task.set_target(self.configuration.get_transform_frame_to_world(self.arm.ee_site, "site"))
@@ -100,13 +101,17 @@ class ArmIK:
             )
         except Exception:  # infeasible QP or solver failure: hold the last good solution
             self.configuration.update(self.q)
+            self.velocity[:] = 0.0
             return False
         if not np.all(np.isfinite(velocity)):
+            self.velocity[:] = 0.0
             return False
         self.configuration.integrate_inplace(velocity, self.dt)
         q = self.configuration.q
         if not np.all(np.isfinite(q)):
             self.configuration.update(self.q)
+            self.velocity[:] = 0.0
             return False
+        self.velocity = velocity
         self.q = q.copy()
         return True
