@@ -191,7 +191,23 @@ def import_pynput_keyboard():
         raise DeviceError(_import_problem(exc)) from None
     except Exception as exc:  # Xlib raises its own errors on some failures
         raise DeviceError(_import_problem(exc)) from None
+    _check_x_display()
     return keyboard
+
+
+def _check_x_display() -> None:
+    """Connect to the X display now: pynput checks only at its first import, and the
+    listener thread would otherwise fail silently if the display has gone since."""
+    if not (sys.platform.startswith("linux") or "bsd" in sys.platform):
+        return
+    try:
+        from Xlib import display as xdisplay
+
+        xdisplay.Display().close()
+    except ImportError:
+        return  # pynput runs on another backend (uinput); nothing to check here
+    except Exception as exc:
+        raise DeviceError(_import_problem(exc)) from None
 
 
 def _key_name(key, listener) -> str | None:
@@ -317,5 +333,7 @@ class KeyboardDevice:
     def close(self) -> None:
         self._closed = True
         if self._listener is not None:
+            # On X11 the listener thread only notices stop() at the next key event;
+            # it is a daemon thread, so it does not hold the process open.
             self._listener.stop()
         self.keys.clear()
