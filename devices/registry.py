@@ -49,7 +49,12 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
         return KeyboardDevice(pos_speed=options.pos_speed, rot_speed=options.rot_speed, n_arms=options.n_arms)
     if name == "spacemouse":
         return _spacemouse(arg, options)
-    # ---- gizmo (browser transform control): branch added by the web issue goes here ----
+    if name == "gizmo":
+        from devices.gizmo import GizmoDevice
+
+        if arg:
+            raise DeviceError(f"gizmo takes no options (got {spec!r})")
+        return GizmoDevice(n_arms=options.n_arms)
     raise DeviceError(f"unknown device {spec!r} (known: keyboard, spacemouse[:N], gizmo, script:FILE)")
 
 
