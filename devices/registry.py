@@ -148,10 +148,11 @@ def _expand(word: str) -> list[str]:
 def open_devices(spec: str, options: DeviceOptions) -> tuple[list[Device], list[str]]:
     """Start every device in a comma list.
 
-    Returns the devices that started and one line per device that did not
-    (or that started with a caveat, such as a keyboard under Wayland), so that
-    a session can carry on with the rest. Raises DeviceError only when the
-    list names nothing usable at all.
+    Returns the devices that started and one line per device that did not,
+    so that a session can carry on with the rest. Raises DeviceError only when
+    the list names nothing usable at all. A started device may carry a
+    caveat in its `warning` attribute (a keyboard under Wayland) for the
+    session to print.
     """
     started: list[Device] = []
     problems: list[str] = []
@@ -166,9 +167,6 @@ def open_devices(spec: str, options: DeviceOptions) -> tuple[list[Device], list[
             problems.append(f"{word}: {exc}")
             continue
         started.append(device)
-        warning = getattr(device, "warning", "")
-        if warning:
-            problems.append(f"{word}: {warning}")
     if not started:
         raise DeviceError("no device could start: " + "; ".join(problems))
     return started, problems

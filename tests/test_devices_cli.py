@@ -1,0 +1,128 @@
+"""`teleop devices` and `teleop run --device keyboard,...` as a user runs them, with and without a display."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from devices.base import DeviceError
+from devices.registry import DeviceOptions, open_devices
+from tests.conftest import ROOT, assert_one_line_error, write_script
+from tests.test_keyboard import xdotool, xvfb  # noqa: F401 - xvfb is a fixture
+
+POS = 0.2
+
+
+def teleop(*args: str, display: str | None, timeout: float = 120) -> subprocess.CompletedProcess:
+    """`teleop ARGS` in a fresh process with DISPLAY set to `display` (None: no display at all)."""
+    return subprocess.run([sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout, env=env_for(display), cwd=ROOT)
+
+
+def env_for(display: str | None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "XDG_SESSION_TYPE")}
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    if display:
+        env["DISPLAY"] = display
+    return env
+
+
+def rows_by_name(result: subprocess.CompletedProcess) -> dict[str, dict]:
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(result.stdout)
+    assert isinstance(rows, list)
+    for row in rows:
+        assert {"name", "kind", "available", "reason"} <= set(row), row
+        assert isinstance(row["available"], bool) and row["reason"]
+    return {row["name"]: row for row in rows}
+
+
+def test_devices_json_without_display_says_why_the_keyboard_is_unavailable():
+    rows = rows_by_name(teleop("devices", "--json", display=None))
+    assert rows["keyboard"]["available"] is False
+    assert "DISPLAY is not set" in rows["keyboard"]["reason"]
+    assert rows["gizmo"]["available"] and rows["script"]["available"]
+    mice = [r for r in rows.values() if r["kind"] == "spacemouse"]
+    assert mice, "a SpaceMouse row (found, or why none) must always be listed"
+    if not any(m["available"] for m in mice):
+        assert all(m["reason"] for m in mice)
+
+
+def test_devices_with_a_display_lists_the_keyboard_and_prints_bindings_and_setup(xvfb):  # noqa: F811
+    rows = rows_by_name(teleop("devices", "--json", display=xvfb))
+    assert rows["keyboard"]["available"] is True
+    text = teleop("devices", display=xvfb)
+    assert text.returncode == 0
+    assert "keyboard    keyboard    yes" in text.stdout
+    assert "toggle the gripper" in text.stdout and "backspace" in text.stdout
+    assert 'ATTRS{idVendor}=="256f"' in text.stdout and "systemctl stop spacenavd" in text.stdout
+
+
+def test_run_without_display_goes_on_with_the_script_and_says_so_in_one_line(tmp_path):
+    script = write_script(tmp_path / "s.json", [{"duration": 0.3, "move": [0, 0, 0.02]}])
+    result = teleop("run", "--device", f"keyboard,script:{script}", "--json", display=None)
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "keyboard" in lines[0] and "DISPLAY" in lines[0], lines
+    assert json.loads(result.stdout)["devices"] == ["script:s.json"]
+
+
+def test_run_with_only_a_keyboard_and_no_display_is_a_one_line_error():
+    result = teleop("run", "--device", "keyboard", "--seconds", "0.1", display=None)
+    assert_one_line_error(result, "keyboard", "no display")
+
+
+def test_open_devices_carries_on_past_failures_and_fails_only_when_none_start(tmp_path, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    script = write_script(tmp_path / "s.json", [{"duration": 0.1}])
+    started, problems = open_devices(f"keyboard, nonsense ,script:{script}", DeviceOptions())
+    assert [d.kind for d in started] == ["script"]
+    assert [p.split(":")[0] for p in problems] == ["keyboard", "nonsense"]
+    with pytest.raises(DeviceError, match="no device could start: keyboard: no display"):
+        open_devices("keyboard", DeviceOptions())
+
+
+def test_holding_w_in_teleop_run_moves_the_end_effector_forward_by_speed_times_time(xvfb, tmp_path):  # noqa: F811
+    """End to end: pynput in `teleop run`, a key held by xdotool, the recorded EE target and pose."""
+    script = write_script(tmp_path / "s.json", [{"duration": 0.2, "gripper": "open"}])
+    record = tmp_path / "rec"
+    cmd = [sys.executable, "-m", "teleop", "run", "--device", f"keyboard,script:{script}", "--seconds", "4",
+           "--pos-speed", str(POS), "--record", str(record), "--json"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env_for(xvfb), cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 90
+        while not (record.exists() and any(record.iterdir())):  # the episode file opens as the loop starts
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "teleop run did not start its episode"
+            time.sleep(0.02)
+        time.sleep(0.5)  # the script's short step is over: only the keyboard drives now
+        down = xdotool(xvfb, "keydown", "w")
+        time.sleep(1.0)
+        up = xdotool(xvfb, "keyup", "w")
+        assert proc.poll() is None, "the run ended before the key was released"
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    summary = json.loads(out)
+    assert summary["devices"] == ["keyboard", "script:s.json"]
+    from replay.episode import load_episode
+
+    episode = load_episode(summary["files"][0])
+    moved = episode.ee_target[-1, 0, :3] - episode.ee_target[0, 0, :3]
+    assert moved[0] == pytest.approx(POS * (up - down), rel=0.2)
+    assert abs(moved[1]) < 1e-3 and abs(moved[2]) < 1e-3
+    reached = episode.ee_pose[-1, 0, :3] - episode.ee_pose[0, 0, :3]
+    assert reached[0] == pytest.approx(moved[0], rel=0.1)
+    sources = {c.get("source") for step in episode.commands for c in step}
+    assert "keyboard" in sources
+    assert np.all(np.diff(episode.ee_target[:, 0, 0]) >= -1e-9)  # never moved backward
