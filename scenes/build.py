@@ -7,6 +7,7 @@ the mesh/texture bytes as assets), so a replay compiles the identical model.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,7 +123,18 @@ def _load_robot_spec(robot: RobotSpec) -> tuple[mujoco.MjSpec, dict[str, bytes],
         arms = tuple(_prepare_user_arm(spec, robot, arm) for arm in arms)
     for key in list(spec.keys):
         spec.delete(key)
+    _stiffen_joint_limits(spec, arms)
     return spec, assets, arms
+
+
+def _stiffen_joint_limits(spec: mujoco.MjSpec, arms: tuple[ArmSpec, ...]) -> None:
+    """Hard joint stops: MuJoCo's default limits are soft enough to be pushed past
+    by a fast arm's own inertia; a robot's range is a promise."""
+    names = {j for arm in arms for j in arm.joints}
+    for joint in spec.joints:
+        if joint.name in names:
+            joint.solref_limit = [0.004, 1.0]
+            joint.solimp_limit = [0.99, 0.999, 0.001, 0.5, 2.0]
 
 
 def _prepare_user_arm(spec: mujoco.MjSpec, robot: RobotSpec, arm: ArmSpec) -> ArmSpec:
@@ -237,7 +249,9 @@ def build_scene(task: str | Task, robot: str | Path | RobotSpec, seed: int = 0, 
 
     try:
         arena.compile()
-        xml = arena.to_xml()
+        # to_xml keeps 6 digits; the timestep must be exact so that the control
+        # period is exactly substeps * timestep.
+        xml = re.sub(r'(<option[^>]*?timestep=")[^"]*(")', rf"\g<1>{timestep!r}\g<2>", arena.to_xml(), count=1)
         model = mujoco.MjModel.from_xml_string(xml, assets)
     except Exception as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

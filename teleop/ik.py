@@ -17,7 +17,10 @@ from scenes import ArmSpec
 POSTURE_COST = 1e-2
 LM_DAMPING = 1e-6
 SOLVER_DAMPING = 1e-4
-MAX_JOINT_SPEED = 2.5  # rad/s (Panda's slowest joints manage 2.175; wrists 2.61)
+LIMIT_MARGIN = 0.03  # rad
+LIMIT_GAIN = 0.3  # approach joint limits gradually: torque-limited joints cannot stop at once
+MAX_JOINT_ACCEL = 30.0  # rad/s^2
+MAX_JOINT_SPEED = 1.5  # rad/s: fast for teleop, slow enough that stiff servos do not overshoot
 
 
 def arm_only_model(xml: str, assets: dict[str, bytes], arm: ArmSpec) -> mujoco.MjModel:
@@ -52,7 +55,8 @@ class ArmIK:
         self.posture_task = mink.PostureTask(self.model, cost=POSTURE_COST)
         self.tasks = [self.frame_task, self.posture_task]
         self.limits: list = [
-            mink.ConfigurationLimit(self.model),
+            # A margin inside the joint range, so the servo's small overshoot stays within it.
+            mink.ConfigurationLimit(self.model, gain=LIMIT_GAIN, min_distance_from_limits=LIMIT_MARGIN),
             mink.VelocityLimit(self.model, {name: MAX_JOINT_SPEED for name in arm.joints}),
         ]
         hand_geoms = self._hand_geoms()
@@ -63,6 +67,10 @@ class ArmIK:
                     collision_detection_distance=0.03,
                 )
             )
+        ranges = self.model.jnt_range[: self.model.nq]
+        limited = self.model.jnt_limited[: self.model.nq].astype(bool)
+        self.q_min = np.where(limited, ranges[:, 0] + LIMIT_MARGIN / 2, -np.inf)
+        self.q_max = np.where(limited, ranges[:, 1] - LIMIT_MARGIN / 2, np.inf)
         self.home = np.asarray(arm.home, dtype=float)
         self.reset(self.home)
 
@@ -106,12 +114,19 @@ class ArmIK:
         if not np.all(np.isfinite(velocity)):
             self.velocity[:] = 0.0
             return False
+        # Bounded acceleration: a joint that jumps to full speed in one tick whips
+        # the rest of the arm (and past its limits) through inertial coupling.
+        step = MAX_JOINT_ACCEL * self.dt
+        velocity = np.clip(velocity, self.velocity - step, self.velocity + step)
         self.configuration.integrate_inplace(velocity, self.dt)
-        q = self.configuration.q
+        q = np.clip(self.configuration.q, self.q_min, self.q_max)
         if not np.all(np.isfinite(q)):
             self.configuration.update(self.q)
             self.velocity[:] = 0.0
             return False
+        if not np.array_equal(q, self.configuration.q):
+            self.configuration.update(q)
+            velocity = (q - self.q) / self.dt
         self.velocity = velocity
-        self.q = q.copy()
+        self.q = q
         return True

@@ -201,8 +201,7 @@ class Session:
         if command.target_pos is not None:
             pos = np.asarray(command.target_pos, dtype=float)
         if command.target_quat is not None:
-            q = np.asarray(command.target_quat, dtype=float)
-            quat = q / np.linalg.norm(q) if np.linalg.norm(q) > 0 else quat
+            quat = np.asarray(command.target_quat, dtype=float)
         translation = np.asarray(command.translation, dtype=float)
         rotation = np.asarray(command.rotation, dtype=float)
         if command.frame == "ee":

@@ -1,0 +1,183 @@
+"""The 3D view: the MuJoCo scene, target and actual end-effector markers, and the gizmos.
+
+Drawing never reads the physics MjData: it copies the latest Snapshot's qpos
+into its own MjData on its own model copy and runs mj_kinematics there. Poses
+go out through mjviser's batched handles (one message per group of bodies),
+at most `max_hz` times a second and only when the state changed.
+
+Gizmos are two-way. A drag pushes poses into the gizmo device; when the target
+moves for any other reason (keyboard, SpaceMouse, a target clamped to the
+workspace, a reset) the gizmo is moved to it, but never while it is held.
+"""
+
+from __future__ import annotations
+
+import collections
+import copy
+import threading
+import time
+
+import mujoco
+import numpy as np
+import trimesh
+import viser
+from mjviser import ViserMujocoScene
+
+from teleop.web.sim_thread import SimThread, Snapshot
+
+GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
+EE_COLOR = (255, 140, 0)
+ERROR_COLOR = (255, 60, 60)
+CAMERA_POSITION = (1.25, -0.95, 0.8)
+CAMERA_LOOK_AT = (0.4, 0.0, 0.15)
+CAMERA_FOV = np.radians(50.0)  # vertical
+POSE_EPS = 1e-5
+
+
+def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
+    return abs(abs(float(np.dot(a, b))) - 1.0) < 1e-8
+
+
+class SceneDrawer:
+    """Pushes the simulation's poses to every browser, up to `max_hz` updates a second."""
+
+    def __init__(self, server: viser.ViserServer, sim: SimThread, gizmo=None, max_hz: float = 60.0) -> None:
+        self.server = server
+        self.sim = sim
+        self.gizmo = gizmo
+        self.period = 1.0 / max_hz
+        self.update_s: collections.deque[float] = collections.deque(maxlen=600)
+        self.updates = 0
+        self.latency_ms: float | None = None
+        self._last_input = 0.0
+        self._last_tick = -1
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="teleop-draw", daemon=True)
+        self._update_lock = threading.Lock()
+        snap = sim.snapshot
+        self._generation = snap.generation
+        self.model = copy.copy(snap.model)
+        self.data = mujoco.MjData(self.model)
+        server.initial_camera.position = CAMERA_POSITION
+        server.initial_camera.look_at = CAMERA_LOOK_AT
+        server.initial_camera.up = (0.0, 0.0, 1.0)
+        server.initial_camera.fov = CAMERA_FOV
+        self.scene = ViserMujocoScene(server, self.model, num_envs=1)
+        self.scene.camera_tracking_enabled = False  # keep world coordinates: gizmos and markers live there
+        n = len(snap.targets)
+        self.target_axes = server.scene.add_batched_axes(
+            "/markers/targets", batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)), batched_positions=np.zeros((n, 3)),
+            axes_length=0.05, axes_radius=0.003,
+        )
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=0.012)
+        self.ee_balls = server.scene.add_batched_meshes_simple(
+            "/markers/ee", ball.vertices, ball.faces, batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)),
+            batched_positions=np.zeros((n, 3)), batched_colors=np.tile(EE_COLOR, (n, 1)).astype(np.uint8),
+            lod="off", cast_shadow=False, receive_shadow=False,
+        )
+        self.error_lines = server.scene.add_line_segments(
+            "/markers/error", points=np.zeros((n, 2, 3)), colors=np.tile(ERROR_COLOR, (n, 2, 1)).astype(np.uint8),
+            thickness=3.0, thickness_units="screen",
+        )
+        self.gizmos: list[viser.TransformControlsHandle] = []
+        if gizmo is not None:
+            for arm, (pos, quat) in enumerate(snap.targets):
+                self.gizmos.append(self._add_gizmo(arm, pos, quat))
+        self.draw(snap)
+
+    def _add_gizmo(self, arm: int, pos: np.ndarray, quat: np.ndarray) -> viser.TransformControlsHandle:
+        handle = self.server.scene.add_transform_controls(
+            f"/gizmo/arm{arm}", scale=GIZMO_SCALE, line_width=3.0, depth_test=False,
+            position=tuple(pos), wxyz=tuple(quat),
+        )
+        gizmo = self.gizmo
+
+        @handle.on_update
+        async def _(event: viser.TransformControlsEvent) -> None:  # async: phases arrive in order
+            gizmo.push(arm, event.target.position, event.target.wxyz, event.phase)
+
+        return handle
+
+    # -- thread ----------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+
+    def _run(self) -> None:
+        next_frame = time.perf_counter()
+        while not self._stop.is_set():
+            snap = self.sim.snapshot
+            if snap.tick != self._last_tick or snap.generation != self._generation:
+                try:
+                    self.draw(snap)
+                except Exception as exc:  # noqa: BLE001 - a drawing hiccup must not end the session
+                    print(f"drawing failed: {type(exc).__name__}: {exc}")
+                next_frame += self.period
+                self._stop.wait(max(0.0, next_frame - time.perf_counter()))
+                if time.perf_counter() - next_frame > self.period:
+                    next_frame = time.perf_counter()
+            else:
+                self._stop.wait(0.002)
+                next_frame = max(next_frame, time.perf_counter() - self.period)
+
+    # -- one update ------------------------------------------------------
+    def draw(self, snap: Snapshot) -> float:
+        """Send one scene update for `snap`; returns its server-side cost in seconds."""
+        with self._update_lock:
+            if snap.generation != self._generation:
+                self._rebuild(snap)
+            start = time.perf_counter()
+            data = self.data
+            data.qpos[:] = snap.qpos
+            if self.model.nmocap:
+                data.mocap_pos[:] = snap.mocap_pos
+                data.mocap_quat[:] = snap.mocap_quat
+            mujoco.mj_kinematics(self.model, data)
+            with self.server.atomic():
+                self._draw_markers(snap)
+                self._sync_gizmos(snap)
+                self.scene.update_from_mjdata(data)  # ends with a flush: one window per update
+            cost = time.perf_counter() - start
+            self.update_s.append(cost)
+            self.updates += 1
+            self._last_tick = snap.tick
+            if snap.input_time > self._last_input:
+                self._last_input = snap.input_time
+                self.latency_ms = (time.monotonic() - snap.input_time) * 1000.0
+            return cost
+
+    def _draw_markers(self, snap: Snapshot) -> None:
+        targets = np.array([np.concatenate(t) for t in snap.targets])
+        ee = np.array([np.concatenate(e) for e in snap.ee])
+        self.target_axes.batched_positions = targets[:, :3]
+        self.target_axes.batched_wxyzs = targets[:, 3:]
+        self.ee_balls.batched_positions = ee[:, :3]
+        self.error_lines.points = np.stack([ee[:, :3], targets[:, :3]], axis=1)
+
+    def _sync_gizmos(self, snap: Snapshot) -> None:
+        for arm, handle in enumerate(self.gizmos):
+            if self.gizmo.busy(arm):
+                continue
+            pos, quat = snap.targets[arm]
+            if np.max(np.abs(np.asarray(handle.position) - pos)) > POSE_EPS:
+                handle.position = tuple(pos)
+            if not _quat_close(np.asarray(handle.wxyz), quat):
+                handle.wxyz = tuple(quat)
+
+    def _rebuild(self, snap: Snapshot) -> None:
+        """A reset compiled a new model (objects elsewhere, maybe fixed ones too): redraw its geometry."""
+        self.model = copy.copy(snap.model)
+        self.data = mujoco.MjData(self.model)
+        self.scene.mj_model = self.model
+        self.scene.mj_data = mujoco.MjData(self.model)
+        self.scene.rebuild_visual_handles()
+        self._generation = snap.generation
+
+    # -- figures ---------------------------------------------------------
+    def update_ms(self) -> float:
+        values = list(self.update_s)
+        return float(np.median(values)) * 1000.0 if values else 0.0

@@ -1,0 +1,249 @@
+"""The control loop of a served session: its own thread, real time, fixed rate.
+
+Everything that changes the Session (device commands, panel buttons, reset)
+runs here, between ticks, under `lock`; the lock is held only while stepping.
+Each tick ends by publishing an immutable `Snapshot` (a copy of qpos and the
+figures the page shows) that drawing, camera and panel threads read without
+any lock, so the physics MjData is touched by nothing but ctrl and mj_step:
+that is what keeps recordings exactly replayable, however many browsers watch.
+
+The loop sleeps to an absolute schedule. When it falls behind by more than a
+few ticks (a slow save, a stalled machine) it drops the lost time instead of
+stepping in a burst, and counts the slip.
+"""
+
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from teleop.session import Session
+
+MAX_LAG_TICKS = 5  # behind schedule by more than this many periods: resynchronise
+RATE_WINDOW_S = 1.0
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What one tick left behind, for threads that must not touch the physics."""
+
+    tick: int
+    generation: int  # changes when reset() builds a new model
+    model: mujoco.MjModel
+    seed: int
+    sim_time: float
+    qpos: np.ndarray
+    mocap_pos: np.ndarray
+    mocap_quat: np.ndarray
+    targets: tuple[tuple[np.ndarray, np.ndarray], ...]
+    ee: tuple[tuple[np.ndarray, np.ndarray], ...]
+    tracking_error_m: np.ndarray
+    gripper_open: tuple[bool, ...]
+    success: bool
+    recording: bool
+    episode_steps: int
+    episodes_saved: int
+    episodes_discarded: int
+    ik_failures: int
+    input_time: float  # time.monotonic() when the newest applied device input arrived (0: none yet)
+    published: float = field(default_factory=time.monotonic)
+
+
+class SimThread:
+    """Runs `session.step` at `session.control_hz` in real time until stopped."""
+
+    def __init__(self, session: Session, devices: list, log: Callable[[str], None] = print) -> None:
+        self.session = session
+        self.devices = list(devices)
+        self.log = log
+        self.lock = threading.Lock()
+        self.device_problems: dict[str, str] = {}
+        self._actions: queue.SimpleQueue[Callable[[Session], None]] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="teleop-sim", daemon=True)
+        self._generation = 0
+        self._model = session.model
+        self._ticks = 0
+        self._tick_times: collections.deque[float] = collections.deque()
+        self._compute_s: collections.deque[float] = collections.deque(maxlen=300)
+        self._input_time = 0.0
+        self._saved_seen = len(session.saved_paths)
+        self.slips = 0
+        self.sim_seconds = 0.0  # simulated time stepped by this loop (survives resets)
+        self.wall_started = 0.0
+        self.error: str | None = None
+        self.on_saved: Callable[[list], None] | None = None  # called (in this thread) with new episode files
+        self.snapshot: Snapshot = self._snapshot()
+
+    # -- control ---------------------------------------------------------
+    def start(self) -> None:
+        self.wall_started = time.monotonic()
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def submit(self, action: Callable[[Session], None]) -> None:
+        """Run `action(session)` in the loop thread before the next tick."""
+        self._actions.put(action)
+
+    def call(self, action: Callable[[Session], object], timeout: float = 30.0):
+        """Run `action(session)` in the loop thread and wait for its result (or run it here if stopped)."""
+        if not self._thread.is_alive():
+            with self.lock:
+                return action(self.session)
+        done = threading.Event()
+        box: list = [None, None]
+
+        def wrapped(session: Session) -> None:
+            try:
+                box[0] = action(session)
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+                box[1] = exc
+            finally:
+                done.set()
+
+        self.submit(wrapped)
+        if not done.wait(timeout):
+            raise TimeoutError("the control loop did not answer")
+        if box[1] is not None:
+            raise box[1]
+        return box[0]
+
+    # -- figures ---------------------------------------------------------
+    def loop_hz(self) -> float:
+        """Ticks in the last second (0 before the first second has passed)."""
+        times = list(self._tick_times)
+        if len(times) < 2:
+            return 0.0
+        span = times[-1] - times[0]
+        return (len(times) - 1) / span if span > 0 else 0.0
+
+    def compute_ms(self) -> float:
+        """Median compute time of one tick (device polls + step + snapshot), ms."""
+        values = list(self._compute_s)
+        return float(np.median(values)) * 1000.0 if values else 0.0
+
+    def headroom(self) -> float:
+        """How many times faster than real time the loop could run (period / tick compute)."""
+        ms = self.compute_ms()
+        return (self.session.dt * 1000.0 / ms) if ms > 0 else 0.0
+
+    def realtime_factor(self) -> float:
+        wall = time.monotonic() - self.wall_started if self.wall_started else 0.0
+        return self.sim_seconds / wall if wall > 0 else 0.0
+
+    # -- the loop ----------------------------------------------------------
+    def _run(self) -> None:
+        period = self.session.dt
+        next_tick = time.perf_counter()
+        try:
+            while not self._stop.is_set():
+                start = time.perf_counter()
+                with self.lock:
+                    self._run_actions()
+                    self._tick()
+                    snapshot = self._snapshot()
+                self.snapshot = snapshot
+                now = time.perf_counter()
+                self._compute_s.append(now - start)
+                stamp = time.monotonic()
+                self._tick_times.append(stamp)
+                while self._tick_times and stamp - self._tick_times[0] > RATE_WINDOW_S:
+                    self._tick_times.popleft()
+                period = self.session.dt
+                next_tick += period
+                delay = next_tick - time.perf_counter()
+                if delay > 0:
+                    self._stop.wait(delay)
+                elif delay < -MAX_LAG_TICKS * period:
+                    self.slips += 1
+                    next_tick = time.perf_counter()
+        except Exception as exc:  # noqa: BLE001 - reported on the page and by the CLI
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.log("control loop stopped: " + self.error)
+            traceback.print_exc()
+        finally:
+            with self.lock:
+                self._run_actions()
+
+    def _run_actions(self) -> None:
+        while True:
+            try:
+                action = self._actions.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                action(self.session)
+            except Exception as exc:  # noqa: BLE001 - a failed button must not stop the loop
+                self.session.note(f"{type(exc).__name__}: {exc}")
+            self._check_saved()
+
+    def _tick(self) -> None:
+        session = self.session
+        commands = []
+        for device in self.devices:
+            if device.name in self.device_problems:
+                continue
+            try:
+                commands.extend(device.poll(session, session.dt))
+            except Exception as exc:  # noqa: BLE001 - one broken device must not stop the others
+                self.device_problems[device.name] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                session.note(f"{device.name} stopped: {self.device_problems[device.name]}")
+        # Devices that stamp their input (the browser gizmo) let the page show input-to-display latency.
+        self._input_time = max([self._input_time, *(getattr(d, "last_input_time", 0.0) for d in self.devices)])
+        session.step(commands)
+        self.sim_seconds += session.dt
+        self._ticks += 1
+        self._check_saved()
+
+    def _check_saved(self) -> None:
+        paths = self.session.saved_paths
+        if len(paths) > self._saved_seen:
+            new = list(paths[self._saved_seen:])
+            self._saved_seen = len(paths)
+            if self.on_saved is not None:
+                self.on_saved(new)
+
+    def _snapshot(self) -> Snapshot:
+        s = self.session
+        if s.model is not self._model:
+            self._model = s.model
+            self._generation += 1
+        data = s.data
+        writer = s.writer
+        return Snapshot(
+            tick=self._ticks,
+            generation=self._generation,
+            model=s.model,
+            seed=s.seed,
+            sim_time=float(data.time),
+            qpos=data.qpos.copy(),
+            mocap_pos=data.mocap_pos.copy(),
+            mocap_quat=data.mocap_quat.copy(),
+            targets=tuple(s.target_pose(i) for i in range(s.n_arms)),
+            ee=tuple(s.ee_pose(i) for i in range(s.n_arms)),
+            tracking_error_m=(s.tracking_errors[-1].copy() if s.tracking_errors else np.zeros(s.n_arms)),
+            gripper_open=tuple(a.gripper_open for a in s.arms),
+            success=bool(s.success()),
+            recording=writer is not None,
+            episode_steps=int(writer.steps) if writer is not None else 0,
+            episodes_saved=s.episodes_saved,
+            episodes_discarded=s.episodes_discarded,
+            ik_failures=s.ik_failures,
+            input_time=self._input_time,
+        )
