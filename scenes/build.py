@@ -107,6 +107,7 @@ def _inline_assets(spec: mujoco.MjSpec, base_dir: Path) -> dict[str, bytes]:
             hfield.file = take(hfield.file, base_dir, "hfield")
     spec.meshdir = ""
     spec.texturedir = ""
+    spec.assets = dict(assets)  # so the spec compiles on its own too
     return assets
 
 
@@ -151,7 +152,7 @@ def _prepare_user_arm(spec: mujoco.MjSpec, robot: RobotSpec, arm: ArmSpec) -> Ar
         jid = mujoco.mj_name2id(probe, mujoco.mjtObj.mjOBJ_JOINT, joint)
         if jid < 0:
             raise SceneError(f"{where}: joint '{joint}' is not in the model")
-        if probe.jnt_type[jid] not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        if int(probe.jnt_type[jid]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
             raise SceneError(f"{where}: joint '{joint}' is not a hinge or slide joint")
     if arm.gripper is not None and mujoco.mj_name2id(probe, mujoco.mjtObj.mjOBJ_ACTUATOR, arm.gripper.actuator) < 0:
         raise SceneError(f"{where}: gripper actuator '{arm.gripper.actuator}' is not in the model")

@@ -26,6 +26,7 @@ MAX_JOINT_SPEED = 1.5  # rad/s: fast for teleop, slow enough that stiff servos d
 def arm_only_model(xml: str, assets: dict[str, bytes], arm: ArmSpec) -> mujoco.MjModel:
     """Compile the scene with only `arm`'s joints left movable."""
     spec = mujoco.MjSpec.from_string(xml, assets)
+    spec.assets = dict(assets)
     for kind in (spec.actuators, spec.tendons, spec.equalities, spec.sensors, spec.keys):
         for element in list(kind):
             spec.delete(element)

@@ -119,6 +119,7 @@ class Session:
         """Build the scene for `seed` (new model: object placement is part of it)."""
         self.seed = int(seed)
         self.scene: Scene = build_scene(self.scene_name, self.robot, self.seed, timestep=self.timestep)
+        self.robot = self.scene.robot  # a user's robot gets its reach measured here
         self.model = self.scene.model
         self.data = self.scene.make_data()
         self.arms: list[ArmState] = []
