@@ -1,0 +1,216 @@
+"""Offscreen camera rendering tuned for dataset export.
+
+Export renders every recorded state from one or more cameras, so the renderer
+must be fast on a CPU (Mesa llvmpipe) as well as on a GPU. MuJoCo's defaults
+(shadow maps, 4x MSAA, a 640x480 buffer, floor reflections, an infinite floor
+drawn as a 200x200 quad grid) cost ~10x over what a small training image needs.
+`tune_model` turns those off on a *copy* of the model, never on the one the
+caller simulates with, and `FastRenderer` drives MuJoCo's low-level mjr API
+with one reused GL context, scene and readback buffer.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+BACKENDS = ("egl", "osmesa", "glfw")
+_chosen_backend: str | None = None
+
+
+class RenderError(RuntimeError):
+    """No usable OpenGL backend, or a camera that is not in the model; one line."""
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What `tune_model` changes; every field off means MuJoCo's look, at MuJoCo's cost."""
+
+    no_shadows: bool = True
+    no_multisampling: bool = True
+    no_reflections: bool = True  # a reflective floor renders the scene twice
+    finite_planes: bool = True  # infinite planes are drawn as 40k quads
+
+
+TUNED = RenderSettings()
+DEFAULTS = RenderSettings(False, False, False, False)
+
+
+def tune_model(model: mujoco.MjModel, width: int, height: int, settings: RenderSettings = TUNED) -> mujoco.MjModel:
+    """A copy of `model` set up for fast offscreen rendering at width x height."""
+    m = copy.copy(model)
+    m.vis.global_.offwidth = int(width)
+    m.vis.global_.offheight = int(height)
+    if settings.no_shadows:
+        m.vis.quality.shadowsize = 0
+        m.light_castshadow[:] = 0
+    if settings.no_multisampling:
+        m.vis.quality.offsamples = 0
+    if settings.no_reflections:
+        m.mat_reflectance[:] = 0
+    if settings.finite_planes:
+        _finite_planes(m)
+    return m
+
+
+def _finite_planes(m: mujoco.MjModel) -> None:
+    """Give infinite planes a finite size and a coarse grid, keeping their texture scale.
+
+    An infinite plane's texture repeats every 2/texrepeat metres; a finite plane's
+    every 2*size/texrepeat unless its material is texuniform, so the material is
+    switched to texuniform, but only when planes alone use it.
+    """
+    half = float(min(m.vis.map.zfar, 10.0) * m.stat.extent)
+    planes = [g for g in range(m.ngeom) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
+    for g in planes:
+        if m.geom_size[g, 0] > 0 and m.geom_size[g, 1] > 0:
+            continue
+        mat = int(m.geom_matid[g])
+        if mat >= 0 and m.mat_texuniform[mat] == 0:
+            users = {int(x) for x in np.flatnonzero(m.geom_matid == mat)}
+            if not users <= set(planes):
+                continue  # shared with a box or mesh: leave this plane infinite
+            m.mat_texuniform[mat] = 1
+        for k in (0, 1):
+            if m.geom_size[g, k] <= 0:
+                m.geom_size[g, k] = half
+        m.geom_size[g, 2] = max(float(m.geom_size[g, 2]), half / 15.0)  # ~30x30 quads
+
+
+def _probe(backend: str) -> bool:
+    """Whether `backend` can make a context here (in a child: a failed GL import poisons the process)."""
+    code = (
+        f"from mujoco.{backend} import GLContext; c = GLContext(8, 8); c.make_current(); c.free()"
+        if backend != "glfw"
+        else "import glfw, sys; sys.exit(0 if glfw.init() else 1)"
+    )
+    env = {**os.environ, "MUJOCO_GL": backend}
+    env.pop("PYOPENGL_PLATFORM", None)
+    try:
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return done.returncode == 0
+
+
+def gl_backend() -> str:
+    """The OpenGL backend to render with: MUJOCO_GL if set, else EGL, else OSMesa."""
+    global _chosen_backend
+    if _chosen_backend is not None:
+        return _chosen_backend
+    wanted = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if wanted:
+        if wanted not in BACKENDS:
+            raise RenderError(f"MUJOCO_GL={wanted!r} cannot render offscreen here (use egl or osmesa)")
+        _chosen_backend = wanted
+        return wanted
+    for backend in ("egl", "osmesa"):
+        if _probe(backend):
+            _chosen_backend = backend
+            return backend
+    raise RenderError(
+        "no OpenGL backend for offscreen rendering: install EGL or OSMesa "
+        "(Debian: apt-get install libegl1 libgl1-mesa-dri libosmesa6) or set MUJOCO_GL"
+    )
+
+
+def _gl_context(backend: str, width: int, height: int):
+    try:
+        if backend == "egl":
+            from mujoco.egl import GLContext
+        elif backend == "osmesa":
+            from mujoco.osmesa import GLContext
+        else:
+            from mujoco.glfw import GLContext
+        ctx = GLContext(width, height)
+        ctx.make_current()
+    except Exception as exc:  # noqa: BLE001 - GL stacks raise anything from ImportError to GLError
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RenderError(f"cannot create an OpenGL context with MUJOCO_GL={backend}: {first}") from None
+    return ctx
+
+
+class FastRenderer:
+    """Renders RGB images of named cameras from an MjData, one GL context for all of them.
+
+    The model given is not modified: rendering uses a tuned copy (see `tune_model`).
+    Pose data comes from the caller's MjData (same model layout), so replaying
+    with the original model and rendering with the copy is fine.
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        width: int,
+        height: int,
+        cameras: list[str],
+        settings: RenderSettings = TUNED,
+        backend: str | None = None,
+    ):
+        if width <= 0 or height <= 0:
+            raise RenderError(f"image size must be positive, got {width}x{height}")
+        self.width, self.height = int(width), int(height)
+        self.model = tune_model(model, width, height, settings)
+        self.camera_ids = []
+        for name in cameras:
+            cid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cid < 0:
+                have = [model.camera(i).name for i in range(model.ncam)]
+                raise RenderError(f"no camera {name!r} in the model (cameras: {', '.join(have) or 'none'})")
+            self.camera_ids.append(cid)
+        self.cameras = list(cameras)
+        self.backend = backend or gl_backend()
+        self._ctx = _gl_context(self.backend, self.width, self.height)
+        self._con = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+        if self._con.currentBuffer != mujoco.mjtFramebuffer.mjFB_OFFSCREEN:
+            raise RenderError("the OpenGL context has no offscreen framebuffer")
+        self._scene = mujoco.MjvScene(self.model, maxgeom=max(1000, 2 * self.model.ngeom))
+        self._option = mujoco.MjvOption()
+        self._perturb = mujoco.MjvPerturb()
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
+        self._buf = np.empty((self.height, self.width, 3), dtype=np.uint8)
+
+    def render(self, data: mujoco.MjData, camera: int | str = 0) -> np.ndarray:
+        """A new (H, W, 3) uint8 image, top row first, of camera index or name at `data`'s poses.
+
+        `data` must be forward-computed (mj_forward, or at least kinematics and
+        mj_camlight: camera and light poses live in MjData).
+        """
+        index = self.cameras.index(camera) if isinstance(camera, str) else camera
+        self._camera.fixedcamid = self.camera_ids[index]
+        mujoco.mjv_updateScene(
+            self.model, data, self._option, self._perturb, self._camera, mujoco.mjtCatBit.mjCAT_ALL, self._scene
+        )
+        mujoco.mjr_render(self._rect, self._scene, self._con)
+        mujoco.mjr_readPixels(self._buf, None, self._rect, self._con)
+        return self._buf[::-1].copy()  # GL rows run bottom-up; callers keep frames, so copy
+
+    def render_all(self, data: mujoco.MjData) -> list[np.ndarray]:
+        """One image per camera, in the order given at construction."""
+        return [self.render(data, i) for i in range(len(self.camera_ids))]
+
+    def close(self) -> None:
+        con, self._con = getattr(self, "_con", None), None
+        if con is not None:
+            con.free()
+        ctx, self._ctx = getattr(self, "_ctx", None), None
+        if ctx is not None:
+            try:
+                ctx.free()
+            except Exception:  # noqa: BLE001 - freeing at shutdown must not raise
+                pass
+
+    def __enter__(self) -> FastRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
