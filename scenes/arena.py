@@ -99,7 +99,7 @@ def _add_cameras(world: mujoco.MjsBody, layout: Layout) -> None:
     if layout.bimanual:
         front_eye = np.array([cx, cy - 1.4 * dist, TABLE_TOP + 0.9 * dist])
     else:
-        front_eye = np.array([cx + 1.3 * dist, cy, TABLE_TOP + 0.8 * dist])
+        front_eye = np.array([cx + 1.15 * dist, cy + 0.35 * dist, TABLE_TOP + 0.6 * dist])
     world.add_camera(name="front", pos=front_eye, xyaxes=_look_at(front_eye, target), fovy=50)
     over_eye = np.array([cx, cy, TABLE_TOP + 2.0 * dist])
     world.add_camera(name="overhead", pos=over_eye, xyaxes=[0, -1, 0, 1, 0, 0] if not layout.bimanual else [1, 0, 0, 0, 1, 0], fovy=55)
