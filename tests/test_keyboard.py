@@ -32,7 +32,7 @@ def xvfb() -> Iterator[str]:
         pytest.fail(f"keyboard tests need Debian packages xvfb and xdotool (missing: {', '.join(missing)})")
     read_end, write_end = os.pipe()
     proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(write_end), "-nolisten", "tcp", "-screen", "0", "320x240x24"],
+        ["Xvfb", "-displayfd", str(write_end), "-nolisten", "tcp", "-noreset", "-screen", "0", "320x240x24"],
         pass_fds=(write_end,),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -74,13 +74,17 @@ def kb(x_display: str) -> Iterator[KeyboardDevice]:
     device = KeyboardDevice(pos_speed=POS, rot_speed=ROT, n_arms=1)
     device.start()
     yield device
+    close_and_join(device, x_display)
+
+
+def close_and_join(device: KeyboardDevice, display: str) -> None:
+    """Close, then wake pynput's X11 listener (it notices stop() at the next key event) and join it."""
     device.close()
-    # pynput's X11 listener notices stop() at the next key event: send an unbound one
     listener = device._listener
     for _ in range(20):
         if not listener.is_alive():
             break
-        xdotool(x_display, "key", "Shift_L")
+        xdotool(display, "key", "Shift_L")  # bound to nothing
         listener.join(0.1)
     assert not listener.is_alive()
 
@@ -232,3 +236,36 @@ def test_bindings_table_lists_every_action_once():
     table = bindings_table()
     for needed in ("gripper", "reset", "start", "save", "discard", "switch arm", "switch frame", "speed up", "speed down"):
         assert needed in table
+
+
+def test_under_wayland_with_xwayland_the_keyboard_starts_with_a_caveat(x_display, monkeypatch):
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-0")
+    device = KeyboardDevice()
+    device.start()
+    try:
+        assert device.status() == "connected"
+        assert "Wayland" in device.warning and "\n" not in device.warning
+    finally:
+        close_and_join(device, x_display)
+
+
+def test_key_state_counts_held_time_per_tick_and_ignores_autorepeat():
+    from devices.keyboard import KeyState
+
+    state = KeyState(now=0.0)
+    state.press("w", 0.010)
+    state.press("w", 0.020)  # autorepeat: no new press, no restart
+    held, presses = state.take(0.040)
+    assert held == {"w": pytest.approx(0.75)} and presses == ["w"]
+    state.release("w", 0.050)
+    state.press("space", 0.060)
+    state.release("space", 0.070)
+    held, presses = state.take(0.080)  # w held 10 of 40 ms; the tap counts too
+    assert held["w"] == pytest.approx(0.25) and held["space"] == pytest.approx(0.25) and presses == ["space"]
+    state.press("space", 0.085)  # X11 autorepeat as release+press pairs: not a new press
+    state.release("space", 0.100)
+    state.press("space", 0.100 + 0.01)
+    _, presses = state.take(0.2)
+    assert presses == []
+    held, _ = state.take(0.3)
+    assert held == {"space": pytest.approx(1.0)}  # still down
