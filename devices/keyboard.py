@@ -73,6 +73,8 @@ MOTION: dict[str, tuple[str, int, float]] = {
 }
 KEY_ACTION: dict[str, str] = {key: b.action for b in BINDINGS for key in b.keys}
 ALIASES = {"+": "=", "_": "-"}  # shift changes the char between press and release
+# While one of these is down, bound keys are ignored: the combination is meant for another app.
+MODIFIERS = frozenset({"ctrl", "ctrl_l", "ctrl_r", "alt", "alt_l", "alt_r", "alt_gr", "cmd", "cmd_l", "cmd_r"})
 
 
 def bindings_table() -> str:
@@ -239,6 +241,7 @@ class KeyboardDevice:
         self.warning = ""  # a caveat found at start (Wayland), for the session to print
         self.keys = KeyState(time.monotonic())
         self._listener = None
+        self._modifiers: set[str] = set()
         self._closed = False
 
     @property
@@ -269,11 +272,19 @@ class KeyboardDevice:
         self.warning = wayland_note() if sys.platform.startswith("linux") else ""
 
     def _on_press(self, key) -> None:
+        modifier = getattr(key, "name", None)
+        if modifier in MODIFIERS:
+            self._modifiers.add(modifier)
+            return
         name = _key_name(key, self._listener)
-        if name is not None:
+        if name is not None and not self._modifiers:  # Ctrl+W, Alt+Tab... belong to other apps
             self.keys.press(name, time.monotonic())
 
     def _on_release(self, key) -> None:
+        modifier = getattr(key, "name", None)
+        if modifier in MODIFIERS:
+            self._modifiers.discard(modifier)
+            return
         name = _key_name(key, self._listener)
         if name is not None:
             self.keys.release(name, time.monotonic())

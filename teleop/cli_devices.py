@@ -27,7 +27,8 @@ def help_text() -> str:
     stances = "\n".join(f"  {name:7} {text}" for name, text in STANCE_HELP.items())
     return (
         "Keyboard (hold a key to move at --pos-speed / --rot-speed; world frame: x away from the base, z up):\n"
-        f"{bindings_table()}\n\n"
+        f"{bindings_table()}\n"
+        "  Keys are read from every window of the display; with Ctrl, Alt or Super held they are ignored.\n\n"
         "SpaceMouse (--device spacemouse[:N][:behind|facing][:toggle|hold][:right=ACTION]):\n"
         f"{stances}\n"
         "  left button: gripper (toggle, or hold = closed while held); "

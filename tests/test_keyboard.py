@@ -269,3 +269,16 @@ def test_key_state_counts_held_time_per_tick_and_ignores_autorepeat():
     assert presses == []
     held, _ = state.take(0.3)
     assert held == {"space": pytest.approx(1.0)}  # still down
+
+
+def test_keys_with_ctrl_or_alt_belong_to_other_apps(kb, x_display):
+    def script(marks):
+        for combo in ("ctrl+w", "ctrl+Return", "alt+space", "ctrl+n"):
+            xdotool(x_display, "key", combo)
+        time.sleep(0.1)
+        xdotool(x_display, "key", "space")  # modifiers released: keys count again
+
+    ticks, _ = run_loop(kb, script)
+    commands = [c for cmds in ticks for c in cmds]
+    assert [c.gripper for c in commands] == ["toggle"]
+    assert not any(c.events for c in commands) and not any(np.any(c.translation) for c in commands)
