@@ -99,6 +99,9 @@ def open_session_devices(spec: str, args: argparse.Namespace, n_arms: int, log=p
         raise UsageError(str(exc)) from None
     for line in problems:
         log(f"device not started: {line}")
+    for device in devices:
+        if getattr(device, "warning", ""):
+            log(f"{device.name}: {device.warning}")
     return devices
 
 
