@@ -6,6 +6,7 @@ when complete, and never over an existing file: a failure leaves nothing behind.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -138,10 +139,11 @@ def write_episode(episode: Episode, out: str | Path, fmt: str) -> Path:
         if fmt == "mcap":
             t0 = int(episode.wall_time[0] * 1e9) if episode.steps and len(episode.wall_time) else None
             sink = McapSink(tmp, meta, layout, t0_ns=t0)
+            sink.yield_s = 0.0  # nothing to share the GIL with
         else:
             sink = Hdf5Sink(tmp, meta, layout)
         try:
-            sink.write(rows, episode.commands)
+            sink.write(rows, [json.dumps(c) if c else "[]" for c in episode.commands])
             sink.finish(end)
         except BaseException:
             sink.abort()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import time
 from pathlib import Path
 
@@ -82,14 +83,39 @@ def _joint_map(model_xml: str, asset_items: tuple) -> tuple[list[str], np.ndarra
     return names, np.array(qi, int), np.array(vi, int)
 
 
-def _stamp(ns: int) -> dict:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+_XYZ_XYZW = [0, 1, 2, 4, 5, 6, 3]  # our x y z qw qx qy qz -> Foxglove's x y z qx qy qz qw
+
+
+def _tf_template(child: str) -> str:
+    """foxglove.FrameTransform JSON with % slots: sec, nsec, x, y, z, qx, qy, qz, qw."""
+    head = json.dumps({"parent_frame_id": schema.WORLD_FRAME, "child_frame_id": child})[1:-1]
+    return (
+        '{"timestamp":{"sec":%d,"nsec":%d},' + head.replace("%", "%%") + ","
+        '"translation":{"x":%.9g,"y":%.9g,"z":%.9g},"rotation":{"x":%.9g,"y":%.9g,"z":%.9g,"w":%.9g}}'
+    )
+
+
+def _finite_or_none(values: list[float]) -> list[float | None]:
+    return [v if math.isfinite(v) else None for v in values]
+
+
+def _tf_json(sec: int, nsec: int, template: str, v: list[float]) -> bytes:
+    """Slow path for a pose with NaN/inf (not valid JSON numbers): those become null."""
+    msg = json.loads(template.replace("%.9g", "0") % (sec, nsec))
+    x, y, z, qx, qy, qz, qw = _finite_or_none(v)
+    msg["translation"] = {"x": x, "y": y, "z": z}
+    msg["rotation"] = {"x": qx, "y": qy, "z": qz, "w": qw}
+    return json.dumps(msg).encode()
 
 
 class McapSink:
     """Writes an episode's rows to an MCAP file, flushed to the OS on demand."""
 
     format = "mcap"
+    # A short sleep every few rows. sleep(0) is not enough: the writer re-takes the GIL
+    # before a waiting control thread wakes up, which then waits out Python's 5 ms
+    # switch interval. Offline conversion sets this to 0.
+    yield_s = 50e-6
 
     def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], t0_ns: int | None = None):
         self.path = path
@@ -139,38 +165,64 @@ class McapSink:
             names = [f"qpos{i}" for i in range(int(meta["nq"]))]
             qi = vi = None
         self._joint_names, self._qi, self._vi = names, qi, vi
+        self._names_json = json.dumps(names)
+        self._tf_templates = {frame: _tf_template(frame) for _, frame, _, _ in self._tf_ch}
         self.flush()
 
-    def write(self, rows: np.ndarray, commands: list[list[dict]]) -> None:
-        """Append rows (n, width); commands[i] belongs to rows[i]."""
+    def write(self, rows: np.ndarray, commands: list[str]) -> None:
+        """Append rows (n, width); commands[i] is the JSON list of rows[i]'s device commands.
+
+        JSON is built from templates over whole-batch lists (%.9g is plenty for
+        viewing; the exact numbers are in the binary step channel): json.dumps
+        per message cost more than the rest of the recorder together.
+        """
+        n = len(rows)
+        if not n:
+            return
         w, cols = self._writer, self._cols
-        if self._sim_t0 is None and len(rows):
+        if self._sim_t0 is None:
             self._sim_t0 = float(rows[0, 0])
-        for row, cmds in zip(rows, commands):
+        ns_all = (self._t0_ns + np.round((rows[:, 0] - self._sim_t0) * 1e9).astype(np.int64)).tolist()
+        tf_vals = []
+        for ch, frame, field, arm in self._tf_ch:
+            block = rows[:, cols[field]][:, arm * 7 : arm * 7 + 7][:, _XYZ_XYZW]
+            tf_vals.append((ch, self._tf_templates[frame], block.tolist(), bool(np.isfinite(block).all())))
+        qpos, qvel = rows[:, cols["qpos"]], rows[:, cols["qvel"]]
+        if self._qi is not None:
+            pos, vel = qpos[:, self._qi], qvel[:, self._vi]
+        else:
+            pos, vel = qpos, qvel[:, :0]
+        js_finite = bool(np.isfinite(pos).all() and np.isfinite(vel).all())
+        pos_l, vel_l = pos.tolist(), vel.tolist()
+        pos_fmt, vel_fmt = ",".join(["%.9g"] * pos.shape[1]), ",".join(["%.9g"] * vel.shape[1])
+        for i in range(n):
             k = self._count
             self._count += 1
-            ns = self._t0_ns + int(round((row[0] - self._sim_t0) * 1e9))
-            w.add_message(self._step_ch, ns, row.tobytes(), ns, sequence=k)
-            stamp = _stamp(ns)
-            if cmds:
-                w.add_message(self._cmd_ch, ns, json.dumps({"step": k, "commands": cmds}).encode(), ns, k)
-            for ch, frame, field, arm in self._tf_ch:
-                p = row[cols[field]][arm * 7 : arm * 7 + 7].tolist()
-                msg = {
-                    "timestamp": stamp,
-                    "parent_frame_id": schema.WORLD_FRAME,
-                    "child_frame_id": frame,
-                    "translation": {"x": p[0], "y": p[1], "z": p[2]},
-                    "rotation": {"x": p[4], "y": p[5], "z": p[6], "w": p[3]},
-                }
-                w.add_message(ch, ns, json.dumps(msg).encode(), ns, k)
-            qpos, qvel = row[cols["qpos"]], row[cols["qvel"]]
-            if self._qi is not None:
-                pos, vel = qpos[self._qi].tolist(), qvel[self._vi].tolist()
+            ns = ns_all[i]
+            sec, nsec = divmod(ns, 1_000_000_000)
+            w.add_message(self._step_ch, ns, rows[i].tobytes(), ns, k)
+            if commands[i] != "[]":
+                w.add_message(self._cmd_ch, ns, f'{{"step":{k},"commands":{commands[i]}}}'.encode(), ns, k)
+            for ch, template, vals, finite in tf_vals:
+                v = vals[i]
+                if finite:
+                    data = (template % (sec, nsec, *v)).encode()
+                else:
+                    data = _tf_json(sec, nsec, template, v)
+                w.add_message(ch, ns, data, ns, k)
+            if js_finite:
+                data = (
+                    f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"name":{self._names_json},'
+                    f'"position":[{pos_fmt % tuple(pos_l[i])}],"velocity":[{vel_fmt % tuple(vel_l[i])}]}}'
+                ).encode()
             else:
-                pos, vel = qpos.tolist(), []
-            msg = {"timestamp": stamp, "name": self._joint_names, "position": pos, "velocity": vel}
-            w.add_message(self._js_ch, ns, json.dumps(msg).encode(), ns, k)
+                data = json.dumps(
+                    {"timestamp": {"sec": sec, "nsec": nsec}, "name": self._joint_names,
+                     "position": _finite_or_none(pos_l[i]), "velocity": _finite_or_none(vel_l[i])}
+                ).encode()
+            w.add_message(self._js_ch, ns, data, ns, k)
+            if i % 4 == 3 and self.yield_s:
+                time.sleep(self.yield_s)  # hand the GIL to the control thread now and then
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (survives kill -9)."""

@@ -11,6 +11,7 @@ incomplete by an atexit hook, so what was recorded is kept.
 from __future__ import annotations
 
 import atexit
+import json
 import re
 import threading
 import time
@@ -93,6 +94,7 @@ class EpisodeWriter:
                 self._drop_files()
                 raise
         self.steps = 0
+        self.cpu_seconds = 0.0  # writer-thread CPU spent encoding and writing, for benches
         self._queue: deque[tuple[np.ndarray, list[dict]]] = deque()
         self._stop = threading.Event()
         self._error: BaseException | None = None
@@ -151,10 +153,15 @@ class EpisodeWriter:
     def _run(self) -> None:
         try:
             while not self._stop.wait(FLUSH_PERIOD):
-                self._drain()
-            self._drain()
+                self._timed_drain()
+            self._timed_drain()
         except BaseException as exc:  # noqa: BLE001 - reported to the caller by append/close
             self._error = exc
+
+    def _timed_drain(self) -> None:
+        t0 = time.thread_time()
+        self._drain()
+        self.cpu_seconds += time.thread_time() - t0
 
     def _drain(self) -> None:
         q = self._queue
@@ -163,11 +170,11 @@ class EpisodeWriter:
             return
         items = [q.popleft() for _ in range(n)]
         rows = np.stack([r for r, _ in items])
-        commands = [c for _, c in items]
+        commands = [json.dumps(c) if c else "[]" for _, c in items]  # encoded once for all sinks
         for sink in self._sinks:
             sink.write(rows, commands)
             sink.flush()
-            time.sleep(0)  # let the control thread have the GIL between sinks
+            time.sleep(50e-6)  # let the control thread have the GIL between sinks
 
     def _abort_sinks(self) -> None:
         for sink in self._sinks:
