@@ -109,8 +109,50 @@ def _panda() -> RobotSpec:
     return RobotSpec(name="panda", mjcf=ROBOTS_DIR / "panda.xml", arms=(arm,), reach=0.85)
 
 
+def _ur5e() -> RobotSpec:
+    arm = ArmSpec(
+        ee_site="ee_site",
+        joints=("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"),
+        home=(-0.3007, -1.717, 1.6873, -1.5411, -1.5708, 1.2701),
+        gripper=GripperSpec("gripper", open=0.0425, closed=0.0),
+        hand_bodies=("gripper_base", "left_finger", "right_finger"),
+    )
+    return RobotSpec(name="ur5e", mjcf=ROBOTS_DIR / "ur5e.xml", arms=(arm,), reach=0.9)
+
+
+def _so101() -> RobotSpec:
+    arm = ArmSpec(
+        ee_site="ee_site",
+        joints=("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"),
+        home=(0.0, 0.1511, -0.0935, 1.5132, 0.0),
+        gripper=GripperSpec("gripper", open=0.55, closed=0.0),
+        # Five joints cannot hold a full pose: weigh orientation low.
+        orientation_cost=0.05,
+        hand_bodies=("gripper", "moving_jaw"),
+    )
+    return RobotSpec(name="so101", mjcf=ROBOTS_DIR / "so101.xml", arms=(arm,), reach=0.43, object_size=0.015)
+
+
+def _bimanual() -> RobotSpec:
+    arm = ArmSpec(
+        ee_site="ee_site",
+        joints=("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate"),
+        home=(0.0, -0.188, 0.3155, 0.0, 1.4433, 0.0),
+        gripper=GripperSpec("gripper", open=0.037, closed=0.0),
+        hand_bodies=("gripper_link", "left_finger", "right_finger"),
+    )
+    half_gap = 0.42
+    return RobotSpec(
+        name="bimanual", mjcf=ROBOTS_DIR / "bimanual_arm.xml", arms=(arm, arm), reach=0.75,
+        mounts=(Mount("left/", (-half_gap, 0.0, 0.0), 0.0), Mount("right/", (half_gap, 0.0, 0.0), 3.141592653589793)),
+    )
+
+
 BUILTIN_ROBOTS: dict[str, tuple[str, callable]] = {
     "panda": ("Franka Panda, 7-DoF arm with a parallel gripper (default)", _panda),
+    "ur5e": ("Universal Robots UR5e, 6-DoF arm with a parallel gripper", _ur5e),
+    "so101": ("LeRobot SO-101, 5-DoF arm with a jaw gripper (orientation weighted low)", _so101),
+    "bimanual": ("two 6-DoF arms (ViperX-like) facing across one table, ALOHA-style", _bimanual),
 }
 
 
