@@ -58,7 +58,7 @@ def pusher_xml(n_boxes: int = 9) -> str:
       <joint name="px" type="slide" axis="1 0 0" range="-0.5 1.2" limited="true" damping="5"/>
       <joint name="py" type="slide" axis="0 1 0" range="-0.6 0.6" limited="true" damping="5"/>
       <geom type="box" size="0.04 0.16 0.04" mass="3"/>
-      <site name="ee" pos="0 0 0.05"/>
+      <site name="ee" pos="0 0 0.05" euler="0 0 0.7"/>
     </body>
     {''.join(boxes)}
   </worldbody>
@@ -141,7 +141,7 @@ def record_pusher_episode(
         mujoco.mj_step(model, data, nstep=substeps)
         mujoco.mj_kinematics(model, data)
         mujoco.mju_mat2Quat(quat, data.site_xmat[site])
-        target = np.concatenate([data.ctrl, [0.1, 1.0, 0.0, 0.0, 0.0]])
+        target = np.concatenate([data.ctrl, [0.1], quat])  # the slider cannot turn: aim at its own heading
         pose = np.concatenate([data.site_xpos[site], quat])
         commands = [{"source": "bench", "step": k}] if k % 10 == 0 else []
         writer.append(StepRecord(time=t, state=state, ctrl=data.ctrl.copy(), ee_target=target[None],

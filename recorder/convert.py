@@ -89,10 +89,12 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict:
                 elif isinstance(rec, Attachment):
                     w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
                 elif isinstance(rec, Metadata):
+                    w.flush()  # keep file order: messages before it stay before it
                     w.add_metadata(rec.name, dict(rec.metadata))
                     stats["had_end_metadata"] |= rec.name == schema.META_END_NAME
             if not stats["had_end_metadata"]:
                 end = {"success": False, "complete": False, "steps": stats["steps"], "recovered": True}
+                w.flush()
                 w.add_metadata(schema.META_END_NAME, schema.encode_meta(end))
             w.finish()
         stats["source_truncated"] = scan.truncated

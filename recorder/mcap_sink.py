@@ -76,7 +76,7 @@ def _joint_map(model_xml: str, asset_items: tuple) -> tuple[list[str], np.ndarra
         return [], np.zeros(0, int), np.zeros(0, int)
     names, qi, vi = [], [], []
     for j in range(model.njnt):
-        if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
             names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
             qi.append(model.jnt_qposadr[j])
             vi.append(model.jnt_dofadr[j])
@@ -229,6 +229,7 @@ class McapSink:
         self._writer.flush()
 
     def finish(self, end_meta: dict) -> None:
+        self._writer.flush()  # every message before the end record: a file cut before it reads as incomplete
         self._writer.add_metadata(schema.META_END_NAME, schema.encode_meta(end_meta))
         self._writer.finish()
         self._file.close()

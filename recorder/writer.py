@@ -85,6 +85,10 @@ class EpisodeWriter:
         self._sinks: list[McapSink | Hdf5Sink] = []
         for fmt in formats:
             path = episode_path(self.directory, index, fmt)
+            if path.exists():  # h5py does not always say FileExistsError
+                raise RecorderError(f"{path}: episode file already exists")
+        for fmt in formats:
+            path = episode_path(self.directory, index, fmt)
             try:
                 self._sinks.append((McapSink if fmt == "mcap" else Hdf5Sink)(path, meta, layout))
             except FileExistsError:
