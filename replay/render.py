@@ -156,28 +156,38 @@ class FastRenderer:
         if width <= 0 or height <= 0:
             raise RenderError(f"image size must be positive, got {width}x{height}")
         self.width, self.height = int(width), int(height)
-        self.model = tune_model(model, width, height, settings)
-        self.camera_ids = []
-        for name in cameras:
-            cid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
-            if cid < 0:
-                have = [model.camera(i).name for i in range(model.ncam)]
-                raise RenderError(f"no camera {name!r} in the model (cameras: {', '.join(have) or 'none'})")
-            self.camera_ids.append(cid)
         self.cameras = list(cameras)
+        self.settings = settings
         self.backend = backend or gl_backend()
+        self._con = None
         self._ctx = _gl_context(self.backend, self.width, self.height)
-        self._con = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
-        if self._con.currentBuffer != mujoco.mjtFramebuffer.mjFB_OFFSCREEN:
-            raise RenderError("the OpenGL context has no offscreen framebuffer")
-        self._scene = mujoco.MjvScene(self.model, maxgeom=max(1000, 2 * self.model.ngeom))
         self._option = mujoco.MjvOption()
         self._perturb = mujoco.MjvPerturb()
         self._camera = mujoco.MjvCamera()
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
         self._buf = np.empty((self.height, self.width, 3), dtype=np.uint8)
+        self.load(model)
+
+    def load(self, model: mujoco.MjModel) -> None:
+        """Render another model (e.g. the next episode's: seeds move objects) in the same GL context."""
+        camera_ids = []
+        for name in self.cameras:
+            cid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cid < 0:
+                have = [model.camera(i).name for i in range(model.ncam)]
+                raise RenderError(f"no camera {name!r} in the model (cameras: {', '.join(have) or 'none'})")
+            camera_ids.append(cid)
+        self.camera_ids = camera_ids
+        self.model = tune_model(model, self.width, self.height, self.settings)
+        self._ctx.make_current()
+        if self._con is not None:
+            self._con.free()
+        self._con = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+        if self._con.currentBuffer != mujoco.mjtFramebuffer.mjFB_OFFSCREEN:
+            raise RenderError("the OpenGL context has no offscreen framebuffer")
+        self._scene = mujoco.MjvScene(self.model, maxgeom=max(1000, 2 * self.model.ngeom))
 
     def render(self, data: mujoco.MjData, camera: int | str = 0) -> np.ndarray:
         """A new (H, W, 3) uint8 image, top row first, of camera index or name at `data`'s poses.

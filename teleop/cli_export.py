@@ -1,7 +1,62 @@
-"""CLI subcommands for export (filled in by its issue)."""
+"""`teleop export`: recorded episodes -> a LeRobot dataset, cameras rendered from exact replay."""
+
+from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
+
+from teleop.errors import UsageError
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register this module's subcommands."""
+    p = sub.add_parser(
+        "export",
+        help="export recorded episodes to a LeRobot dataset (camera images rendered from exact replay)",
+        description="Export recorded episodes to a LeRobot dataset. Camera images are rendered by "
+        "replaying the recorded states, so any camera at any size can be chosen now.",
+    )
+    p.add_argument("paths", nargs="+", type=Path, metavar="PATHS", help="episode files or directories of them")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset directory (must not exist unless --append)")
+    p.add_argument("--repo-id", required=True, metavar="NAME", help="dataset name, e.g. me/panda_lift")
+    p.add_argument(
+        "--cameras", default=None, metavar="LIST",
+        help="comma list of cameras to render; 'wrist' means every arm's wrist camera; 'none' for no images "
+        "(default: front,wrist where the scene has them)",
+    )
+    p.add_argument("--image-size", default="224x224", metavar="WxH", help="image width x height (default 224x224)")
+    p.add_argument(
+        "--action", default="joint", choices=("joint", "ee_delta", "ee_pose"),
+        help="action: joint position targets + gripper (default); ee_delta: commanded EE target minus the "
+        "current EE pose (world frame, m and rotation vector rad) + gripper; ee_pose: commanded EE pose "
+        "(xyz + quat wxyz) + gripper. Gripper: 1 open .. 0 closed",
+    )
+    p.add_argument("--task", default=None, metavar="TEXT", help="task text for every frame (default: each episode's recorded task)")
+    p.add_argument("--only-success", action="store_true", help="skip episodes that did not succeed at their task")
+    p.add_argument("--no-video", action="store_true", help="store camera frames as PNG images instead of MP4 video")
+    p.add_argument("--append", action="store_true", help="add the episodes to the existing dataset at --out")
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from replay.export import ExportError, ExportOptions, export_dataset, parse_cameras, parse_image_size
+
+    try:
+        opts = ExportOptions(
+            out=args.out,
+            repo_id=args.repo_id,
+            cameras=parse_cameras(args.cameras),
+            image_size=parse_image_size(args.image_size),
+            action=args.action,
+            task=args.task,
+            only_success=args.only_success,
+            video=not args.no_video,
+            append=args.append,
+            progress=sys.stderr.isatty(),
+        )
+        summary = export_dataset(args.paths, opts)
+    except ExportError as exc:
+        raise UsageError(str(exc)) from None
+    print(summary.line())
+    return 130 if summary.interrupted else 0

@@ -1,0 +1,381 @@
+"""Export recorded episodes to a LeRobot dataset, rendering cameras from exact replay.
+
+Works only from the recorded files and their stored model XML: each recorded
+state is restored (mj_setState + mj_forward) and rendered offscreen, so any
+camera at any size can be chosen after the fact and the teleop loop never paid
+for rendering. Everything is written through LeRobot's own API
+(`LeRobotDataset.create` / `resume`, `add_frame`, `save_episode`, `finalize`),
+and `finalize` runs whatever happens, Ctrl-C included: an unfinalized dataset
+loses every episode in its open parquet file.
+
+LeRobot is an optional extra, imported only when an export starts.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from replay.engine import replay_states
+from replay.episode import Episode, EpisodeError, find_episodes, load_episode
+from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, robot_layout
+from replay.render import FastRenderer, RenderError
+
+LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
+DEFAULT_CAMERAS = ("front", "wrist")
+
+
+class ExportError(ValueError):
+    """Bad export input (files, flags, an existing dataset); the message is one line."""
+
+
+@dataclass
+class ExportOptions:
+    out: Path
+    repo_id: str
+    cameras: list[str] | None = None  # None: front + wrist cameras where the scene has them
+    image_size: tuple[int, int] = (224, 224)  # width, height
+    action: str = "joint"
+    task: str | None = None  # None: each episode's recorded task text
+    only_success: bool = False
+    video: bool = True
+    append: bool = False
+    progress: bool = True
+
+
+@dataclass
+class ExportSummary:
+    out: Path
+    episodes: int = 0  # written by this export
+    frames: int = 0
+    seconds: float = 0.0  # wall time of the export
+    bytes: int = 0  # size of the dataset directory afterwards
+    dataset_episodes: int = 0  # in the dataset afterwards (more than `episodes` with --append)
+    fps: int = 0
+    cameras: list[str] = field(default_factory=list)
+    skipped_failed: int = 0
+    skipped_empty: int = 0
+    interrupted: bool = False
+    backend: str = ""
+
+    @property
+    def frames_per_s(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+    def line(self) -> str:
+        """The one-paragraph summary the CLI prints."""
+        mb = self.bytes / 1e6
+        text = (
+            f"exported {self.episodes} episode{'s' * (self.episodes != 1)}, {self.frames} frames "
+            f"({self.frames / self.fps if self.fps else 0:.1f} s at {self.fps} fps) in {self.seconds:.1f} s "
+            f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, {self.dataset_episodes} episodes in all)"
+        )
+        skipped = []
+        if self.skipped_failed:
+            skipped.append(f"{self.skipped_failed} failed (--only-success)")
+        if self.skipped_empty:
+            skipped.append(f"{self.skipped_empty} empty")
+        if skipped:
+            text += "; skipped " + ", ".join(skipped)
+        if self.interrupted:
+            text += "; interrupted: the episodes above were saved, the one in progress was dropped"
+        return text
+
+
+def parse_image_size(text: str) -> tuple[int, int]:
+    """'224x224' (width x height) -> (224, 224)."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
+    if not m or not (0 < int(m.group(1)) <= 4096 and 0 < int(m.group(2)) <= 4096):
+        raise ExportError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 224x224 (1 to 4096 pixels)")
+    return int(m.group(1)), int(m.group(2))
+
+
+def parse_cameras(text: str | None) -> list[str] | None:
+    """'front,wrist' -> ['front', 'wrist']; 'none' or '' -> [] (no images); None -> default."""
+    if text is None:
+        return None
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    return [] if names in ([], ["none"]) else names
+
+
+# -- choosing what to export ------------------------------------------------
+
+
+@dataclass
+class _Entry:
+    path: Path
+    signature: tuple  # (robot, scene, control_hz): must agree across an export
+    layout: tuple  # arms' joints/actuators: a same-named robot must also agree here
+    success: bool
+    steps: int
+    cameras: list[str]
+
+
+def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
+    try:
+        files = find_episodes(list(paths))
+    except EpisodeError as exc:
+        raise ExportError(str(exc)) from None
+    if not files:
+        raise ExportError("no episode files (.mcap, .hdf5) in " + ", ".join(map(str, paths)))
+    entries = []
+    for f in files:
+        try:
+            ep = load_episode(f)
+        except EpisodeError as exc:
+            raise ExportError(str(exc)) from None
+        m = ep.meta
+        arms = m.get("robot_spec", {}).get("arms") or []
+        entries.append(
+            _Entry(
+                path=f,
+                signature=(m.get("robot"), m.get("scene"), float(m.get("control_hz") or 0)),
+                layout=tuple((tuple(a.get("joints", ())), tuple(a.get("actuators") or ())) for a in arms),
+                success=bool(m.get("success")),
+                steps=ep.steps,
+                cameras=list(m.get("cameras") or []),
+            )
+        )
+    return entries
+
+
+def _names(paths: list[Path], limit: int = 3) -> str:
+    shown = ", ".join(p.name for p in paths[:limit])
+    return shown + (f" and {len(paths) - limit} more" if len(paths) > limit else "")
+
+
+def _check_consistent(entries: list[_Entry]) -> None:
+    groups: dict[tuple, list[Path]] = {}
+    for e in entries:
+        groups.setdefault((*e.signature, e.layout), []).append(e.path)
+    if len(groups) > 1:
+        labels = [f"robot {k[0]} / scene {k[1]} / {k[2]:g} Hz" for k in groups]
+        parts = [
+            f"{label}{' (other joints)' if labels.count(label) > 1 else ''}: {_names(files)}"
+            for label, files in zip(labels, groups.values())
+        ]
+        raise ExportError("episodes come from different robots, scenes or rates; export them separately: " + "; ".join(parts))
+
+
+def _resolve_cameras(wanted: list[str] | None, have: list[str]) -> list[str]:
+    """Exact names, or a short name that matches one camera per arm (`wrist` -> `left/wrist`, `right/wrist`)."""
+    explicit = wanted is not None
+    out: list[str] = []
+    for name in DEFAULT_CAMERAS if wanted is None else wanted:
+        matches = [name] if name in have else [c for c in have if c.endswith("/" + name)]
+        if not matches:
+            if explicit:
+                raise ExportError(f"unknown camera {name!r} (cameras: {', '.join(have) or 'none'})")
+            continue
+        out += [m for m in matches if m not in out]
+    keys = [feature_key(c) for c in out]
+    if len(set(keys)) != len(keys):
+        raise ExportError(f"cameras {', '.join(out)} map to the same dataset key; choose fewer")
+    return out
+
+
+def _fps(hz: float) -> int:
+    fps = round(hz)
+    if fps <= 0 or abs(fps - hz) > 1e-6:
+        raise ExportError(f"control rate {hz:g} Hz is not a whole number of frames per second, which LeRobot needs")
+    return fps
+
+
+# -- LeRobot ----------------------------------------------------------------
+
+
+def _lerobot():
+    """The LeRobotDataset class, or a one-line ExportError saying which extra to install."""
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # export is local: never wait on the Hub
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1: errors only, not a banner per episode
+    os.environ.setdefault("HF_DATASETS_DISABLE_PROGRESS_BARS", "1")  # ours is the one progress bar
+    try:
+        from lerobot.datasets import LeRobotDataset
+    except ImportError:
+        raise ExportError(LEROBOT_HINT) from None
+    try:
+        import av
+
+        # LeRobot's encoder hands logging back to FFmpeg's own printer: keep it to errors,
+        # not an "[mp4 @ 0x...] Starting second pass" line per video.
+        av.logging.set_libav_level(av.logging.ERROR)
+    except (ImportError, AttributeError):
+        pass
+    return LeRobotDataset
+
+
+def _check_appendable(meta, spec: dict, fps: int, robot_type: str, out: Path) -> None:
+    problems = []
+    if meta.fps != fps:
+        problems.append(f"fps {meta.fps} there, {fps} here")
+    if meta.robot_type != robot_type:
+        problems.append(f"robot {meta.robot_type} there, {robot_type} here")
+    theirs = {k: v for k, v in meta.features.items() if k.startswith(("observation.", "action"))}
+    for key in sorted(set(theirs) | set(spec)):
+        a, b = theirs.get(key), spec.get(key)
+        if a is None or b is None:
+            problems.append(f"{key} {'missing there' if a is None else 'not exported here'}")
+        elif a["dtype"] != b["dtype"] or tuple(a["shape"]) != tuple(b["shape"]) or list(a.get("names") or []) != list(b["names"]):
+            problems.append(f"{key} is {a['dtype']}{list(a['shape'])} there, {b['dtype']}{list(b['shape'])} here")
+    if problems:
+        raise ExportError(f"--append: {out} does not match these episodes: " + "; ".join(problems[:4]))
+
+
+def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, robot_type: str, queue: int):
+    """(dataset, created) for --out: a new dataset, or the existing one with --append."""
+    out = opts.out
+    common = dict(streaming_encoding=opts.video, encoder_queue_maxsize=queue)
+    if out.exists():
+        if not opts.append:
+            raise ExportError(f"--out {out} already exists (add --append to add episodes to it, or choose a new directory)")
+        if not (out / "meta" / "info.json").is_file():
+            raise ExportError(f"--append: {out} is not a LeRobot dataset (no meta/info.json)")
+        try:
+            ds = LeRobotDataset.resume(opts.repo_id, root=out, image_writer_threads=0 if opts.video else 2, **common)
+        except Exception as exc:  # noqa: BLE001 - LeRobot raises many kinds for a broken dataset
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ExportError(f"--append: cannot open {out} as a LeRobot dataset: {first}") from None
+        try:
+            _check_appendable(ds.meta, spec, fps, robot_type, out)
+        except ExportError:
+            ds.finalize()
+            raise
+        return ds, False
+    ds = LeRobotDataset.create(
+        opts.repo_id, fps, spec, root=out, robot_type=robot_type, use_videos=opts.video,
+        image_writer_threads=0 if opts.video else 2, **common,
+    )
+    return ds, True
+
+
+def _dir_size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+# -- the export -------------------------------------------------------------
+
+
+def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None) -> ExportSummary:
+    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc)."""
+    log = log or (lambda line: print(line, file=sys.stderr))
+    paths = list(paths)
+    if opts.action not in ACTION_MODES:
+        raise ExportError(f"--action {opts.action!r}: choose one of {', '.join(ACTION_MODES)}")
+    if not opts.repo_id or not opts.repo_id.strip():
+        raise ExportError("--repo-id must not be empty")
+    if opts.out.exists() and not opts.append:
+        raise ExportError(f"--out {opts.out} already exists (add --append to add episodes to it, or choose a new directory)")
+    LeRobotDataset = _lerobot()
+
+    entries = _scan(paths)
+    summary = ExportSummary(out=opts.out)
+    chosen = []
+    for e in entries:
+        if opts.only_success and not e.success:
+            summary.skipped_failed += 1
+        elif e.steps == 0:
+            summary.skipped_empty += 1
+        else:
+            chosen.append(e)
+    if not chosen:
+        why = f" ({summary.skipped_failed} did not succeed)" if summary.skipped_failed else ""
+        raise ExportError(f"no episodes to export among {len(entries)} found{why}")
+    _check_consistent(chosen)
+    robot_type, _, hz = chosen[0].signature
+    fps = summary.fps = _fps(hz)
+    cameras = summary.cameras = _resolve_cameras(opts.cameras, chosen[0].cameras)
+
+    first = load_episode(chosen[0].path)
+    model = first.build_model()
+    try:
+        arms = robot_layout(first.meta, model)
+    except (KeyError, ValueError) as exc:
+        raise ExportError(f"{first.path}: robot_spec does not match the recorded model: {exc}") from None
+    spec = features(arms, opts.action, cameras, opts.image_size, opts.video)
+    renderer = None
+    if cameras:
+        try:
+            renderer = FastRenderer(model, *opts.image_size, cameras)
+        except RenderError as exc:
+            raise ExportError(str(exc)) from None
+        summary.backend = renderer.backend
+    # A streamed episode never waits on the encoder: its queue holds a whole episode.
+    queue = max(e.steps for e in chosen) + 2
+    t0 = time.perf_counter()
+    try:
+        ds, created = _open_dataset(LeRobotDataset, opts, spec, fps, robot_type, queue)
+    except BaseException:
+        if renderer is not None:
+            renderer.close()
+        raise
+    try:
+        _write(ds, chosen, first, opts, cameras, renderer, summary)
+    except KeyboardInterrupt:
+        summary.interrupted = True
+    finally:
+        _finish(ds, renderer)
+        summary.seconds = time.perf_counter() - t0
+        if created and summary.episodes == 0 and opts.out.exists():
+            shutil.rmtree(opts.out, ignore_errors=True)  # nothing saved: leave no half dataset behind
+    summary.dataset_episodes = ds.meta.total_episodes
+    summary.bytes = _dir_size(opts.out) if opts.out.exists() else 0
+    return summary
+
+
+def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, cameras, renderer, summary: ExportSummary) -> None:
+    from tqdm import tqdm
+
+    keys = [feature_key(c) for c in cameras]
+    total = sum(e.steps for e in chosen)
+    bar = tqdm(total=total, unit="frame", desc="export", disable=not opts.progress, file=sys.stderr, dynamic_ncols=True)
+    try:
+        for i, entry in enumerate(chosen):
+            ep = first if i == 0 else load_episode(entry.path)
+            first = None  # let the first episode's arrays go
+            model = ep.build_model()
+            if renderer is not None and i > 0:
+                renderer.load(model)  # seeds move objects: each episode has its own model
+            build = FrameBuilder(robot_layout(ep.meta, model), opts.action)
+            task = opts.task or ep.meta.get("task") or ep.meta.get("scene") or "task"
+            bar.set_description(f"episode {i + 1}/{len(chosen)}")
+            try:
+                for k, data in replay_states(ep, model):
+                    frame = build(data, ep.ctrl[k], ep.ee_target[k])
+                    if renderer is not None:
+                        for key, image in zip(keys, renderer.render_all(data)):
+                            frame[key] = image
+                    frame["task"] = task
+                    ds.add_frame(frame)
+                    bar.update(1)
+                ds.save_episode()
+            except BaseException:
+                if ds.has_pending_frames():
+                    ds.clear_episode_buffer()
+                raise
+            summary.episodes += 1
+            summary.frames += ep.steps
+    finally:
+        bar.close()
+
+
+def _finish(ds, renderer) -> None:
+    """finalize() with a second Ctrl-C ignored: cutting it short would lose saved episodes."""
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        ds.finalize()
+    finally:
+        if main:
+            signal.signal(signal.SIGINT, old)
+        if renderer is not None:
+            renderer.close()

@@ -1,0 +1,171 @@
+"""What one exported frame holds: features of a LeRobot dataset, computed from a replayed state.
+
+Frame k pairs the observation at recorded state k (before control step k) with
+the action applied at step k, which is how LeRobot datasets and policies read
+(observation -> action). Bimanual robots concatenate arms in recorded order
+(left, then right).
+
+Gripper values are normalized to 1 = open .. 0 = closed, in both the state
+(the gripper actuator's measured length) and the action (its ctrl target), so
+that one policy output fits any gripper's ctrl range; the raw range is stored
+per robot in the recording's robot_spec.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+ACTION_MODES = ("joint", "ee_delta", "ee_pose")
+POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
+DELTA_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz")
+
+
+@dataclass
+class ArmLayout:
+    """Where one arm's joints, actuators, site and gripper live in the model."""
+
+    prefix: str  # "" for a single arm, else e.g. "left/"
+    joints: list[str]
+    qpos_adr: np.ndarray
+    ctrl_ids: np.ndarray
+    site_id: int
+    gripper_id: int | None
+    gripper_open: float
+    gripper_closed: float
+
+    def gripper_fraction(self, value: float) -> float:
+        """Gripper ctrl or length as 1 = open .. 0 = closed."""
+        span = self.gripper_open - self.gripper_closed
+        return float((value - self.gripper_closed) / span) if span else 0.0
+
+    @property
+    def gripper_name(self) -> list[str]:
+        return [f"{self.prefix}gripper"] if self.gripper_id is not None else []
+
+
+def _prefix(arm: dict, index: int, n_arms: int) -> str:
+    if n_arms == 1:
+        return ""
+    head = [j.split("/", 1)[0] for j in arm["joints"] if "/" in j]
+    if len(head) == len(arm["joints"]) and len(set(head)) == 1:
+        return f"{head[0]}/"
+    return f"arm{index}/"
+
+
+def robot_layout(meta: dict, model: mujoco.MjModel) -> list[ArmLayout]:
+    """Arm layouts from a recording's robot_spec, resolved against its model."""
+    arms = meta["robot_spec"]["arms"]
+    out = []
+    for i, arm in enumerate(arms):
+        actuators = arm.get("actuators") or []
+        gripper = arm.get("gripper_actuator")
+        out.append(
+            ArmLayout(
+                prefix=_prefix(arm, i, len(arms)),
+                joints=list(arm["joints"]),
+                qpos_adr=np.array([model.joint(j).qposadr[0] for j in arm["joints"]], dtype=int),
+                ctrl_ids=np.array([model.actuator(a).id for a in actuators], dtype=int),
+                site_id=model.site(arm["ee_site"]).id,
+                gripper_id=model.actuator(gripper).id if gripper else None,
+                gripper_open=float(arm.get("gripper_open") or 0.0),
+                gripper_closed=float(arm.get("gripper_closed") or 0.0),
+            )
+        )
+    return out
+
+
+def feature_key(camera: str) -> str:
+    """Dataset key of a camera: `left/wrist` -> `observation.images.left_wrist`."""
+    return "observation.images." + re.sub(r"[^A-Za-z0-9_-]+", "_", camera).strip("_")
+
+
+def features(arms: list[ArmLayout], action: str, cameras: list[str], size: tuple[int, int], video: bool) -> dict:
+    """The LeRobot feature spec (dtype, shape, names) for these arms, action mode and cameras."""
+    if action not in ACTION_MODES:
+        raise ValueError(f"unknown action mode {action!r} (modes: {', '.join(ACTION_MODES)})")
+    state = [n for a in arms for n in [*a.joints, *a.gripper_name]]
+    pose = [f"{a.prefix}{n}" for a in arms for n in POSE_NAMES]
+    if action == "joint":
+        act = state
+    elif action == "ee_pose":
+        act = [n for a in arms for n in [*(f"{a.prefix}{p}" for p in POSE_NAMES), *a.gripper_name]]
+    else:
+        act = [n for a in arms for n in [*(f"{a.prefix}{p}" for p in DELTA_NAMES), *a.gripper_name]]
+    spec = {
+        "observation.state": {"dtype": "float32", "shape": (len(state),), "names": state},
+        "observation.ee_pose": {"dtype": "float32", "shape": (len(pose),), "names": pose},
+        "action": {"dtype": "float32", "shape": (len(act),), "names": act},
+    }
+    width, height = size
+    for cam in cameras:
+        spec[feature_key(cam)] = {
+            "dtype": "video" if video else "image",
+            "shape": (height, width, 3),
+            "names": ["height", "width", "channels"],
+        }
+    return spec
+
+
+def _site_quat(data: mujoco.MjData, site: int) -> np.ndarray:
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, data.site_xmat[site])
+    return q
+
+
+def _same_hemisphere(q: np.ndarray, ref: np.ndarray | None) -> np.ndarray:
+    """q or -q (the same rotation), whichever is nearer `ref`: no sign flips along an episode."""
+    return -q if ref is not None and float(np.dot(q, ref)) < 0 else q
+
+
+def _rotation_vector(q_to: np.ndarray, q_from: np.ndarray) -> np.ndarray:
+    """World-frame axis*angle (rad) that turns q_from into q_to, the short way round."""
+    conj = np.array([q_from[0], -q_from[1], -q_from[2], -q_from[3]])
+    diff = np.empty(4)
+    mujoco.mju_mulQuat(diff, q_to, conj)
+    if diff[0] < 0:
+        diff = -diff
+    vel = np.empty(3)
+    mujoco.mju_quat2Vel(vel, diff, 1.0)
+    return vel
+
+
+class FrameBuilder:
+    """Turns (replayed MjData at step k, recorded row k) into the non-image features.
+
+    Keeps each arm's last quaternion so orientations stay on one hemisphere.
+    """
+
+    def __init__(self, arms: list[ArmLayout], action: str):
+        self.arms = arms
+        self.action = action
+        self._last: list[np.ndarray | None] = [None] * len(arms)
+
+    def __call__(self, data: mujoco.MjData, ctrl: np.ndarray, ee_target: np.ndarray) -> dict[str, np.ndarray]:
+        state, pose, act = [], [], []
+        for i, arm in enumerate(self.arms):
+            q_obs = _same_hemisphere(_site_quat(data, arm.site_id), self._last[i])
+            self._last[i] = q_obs
+            pos = data.site_xpos[arm.site_id]
+            grip_state, grip_act = [], []
+            if arm.gripper_id is not None:
+                grip_state = [arm.gripper_fraction(data.actuator_length[arm.gripper_id])]
+                grip_act = [arm.gripper_fraction(ctrl[arm.gripper_id])]
+            state += [*data.qpos[arm.qpos_adr], *grip_state]
+            pose += [*pos, *q_obs]
+            if self.action == "joint":
+                act += [*ctrl[arm.ctrl_ids], *grip_act]
+            else:
+                t_pos, t_quat = ee_target[i, :3], _same_hemisphere(ee_target[i, 3:], q_obs)
+                if self.action == "ee_pose":
+                    act += [*t_pos, *t_quat, *grip_act]
+                else:
+                    act += [*(t_pos - pos), *_rotation_vector(t_quat, q_obs), *grip_act]
+        return {
+            "observation.state": np.asarray(state, dtype=np.float32),
+            "observation.ee_pose": np.asarray(pose, dtype=np.float32),
+            "action": np.asarray(act, dtype=np.float32),
+        }
