@@ -42,8 +42,8 @@ def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = Non
     spec.option.impratio = 10.0
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480
-    spec.visual.headlight.ambient = [0.3, 0.3, 0.3]
-    spec.visual.headlight.diffuse = [0.5, 0.5, 0.5]
+    spec.visual.headlight.ambient = [0.25, 0.25, 0.25]
+    spec.visual.headlight.diffuse = [0.35, 0.35, 0.35]
     spec.stat.center = [layout.center[0], layout.center[1], 0.2]
     spec.stat.extent = 1.5
 
@@ -57,8 +57,8 @@ def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = Non
     leg_height = 0.75
 
     world = spec.worldbody
-    world.add_light(pos=[layout.center[0], layout.center[1], 2.5], dir=[0, 0, -1], diffuse=[0.7, 0.7, 0.7], castshadow=True)
-    world.add_light(pos=[-1.5, -1.5, 2.0], dir=[0.5, 0.5, -0.7], diffuse=[0.3, 0.3, 0.3], castshadow=False)
+    world.add_light(pos=[layout.center[0], layout.center[1], 2.5], dir=[0, 0, -1], diffuse=[0.55, 0.55, 0.55], specular=[0.05, 0.05, 0.05], castshadow=True)
+    world.add_light(pos=[-1.5, -1.5, 2.0], dir=[0.5, 0.5, -0.7], diffuse=[0.3, 0.3, 0.3], specular=[0.05, 0.05, 0.05], castshadow=False)
     world.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
         pos=[0, 0, TABLE_TOP - leg_height], material=floor_mat.name,
@@ -93,16 +93,18 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> list[float]:
 
 
 def _add_cameras(world: mujoco.MjsBody, layout: Layout) -> None:
+    """`front` frames the robot and the workspace; `overhead` looks straight down on the workspace."""
     cx, cy = layout.center
-    target = np.array([cx, cy, TABLE_TOP + 0.05])
     dist = max(0.6, 2.2 * layout.spread + 0.45)
     if layout.bimanual:
-        front_eye = np.array([cx, cy - 1.4 * dist, TABLE_TOP + 0.9 * dist])
+        target = np.array([cx, cy, TABLE_TOP + 0.1])
+        front_eye = np.array([cx, cy - 1.5 * dist, TABLE_TOP + 0.9 * dist])
     else:
-        front_eye = np.array([cx + 1.15 * dist, cy + 0.35 * dist, TABLE_TOP + 0.6 * dist])
+        target = np.array([0.6 * cx, cy, TABLE_TOP + 0.35 * cx])
+        front_eye = np.array([cx + 1.5 * dist, cy + 0.6 * dist, TABLE_TOP + 0.9 * dist])
     world.add_camera(name="front", pos=front_eye, xyaxes=_look_at(front_eye, target), fovy=50)
-    over_eye = np.array([cx, cy, TABLE_TOP + 2.0 * dist])
-    world.add_camera(name="overhead", pos=over_eye, xyaxes=[0, -1, 0, 1, 0, 0] if not layout.bimanual else [1, 0, 0, 0, 1, 0], fovy=55)
+    over_eye = np.array([cx, cy, TABLE_TOP + 1.5 * dist])
+    world.add_camera(name="overhead", pos=over_eye, xyaxes=[0, -1, 0, 1, 0, 0] if not layout.bimanual else [1, 0, 0, 0, 1, 0], fovy=45)
 
 
 def yaw_quat(yaw: float) -> list[float]:
