@@ -115,7 +115,10 @@ class EpisodeWriter:
         """Queue one step; encoding and IO happen on the writer thread."""
         if self._closed or self._error is not None:
             raise RecorderError(self._why_stopped())
-        row = pack(step)
+        try:
+            row = pack(step)
+        except ValueError as exc:  # an array of the wrong rank
+            raise RecorderError(f"step does not fit the episode layout: {exc}") from None
         if row.shape[0] != self._width:
             raise RecorderError(f"step has {row.shape[0]} numbers, the episode layout needs {self._width}")
         self._queue.append((row, step.commands))
@@ -132,7 +135,10 @@ class EpisodeWriter:
         end = {"success": bool(success), "complete": bool(complete), "steps": self.steps}
         self.meta.update(end)
         for sink in self._sinks:
-            sink.finish(end)
+            try:
+                sink.finish(end)
+            except OSError as exc:
+                raise RecorderError(f"{sink.path}: cannot finish the file: {exc}") from None
         return self.paths
 
     def discard(self) -> None:

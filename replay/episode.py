@@ -96,6 +96,8 @@ def sniff_format(path: Path) -> str:
             head = fh.read(8)
     except OSError as exc:
         raise EpisodeError(f"{path}: cannot read: {exc.strerror}") from None
+    if not head:
+        raise EpisodeError(f"{path}: file is empty")
     if head == schema.MCAP_MAGIC:
         return "mcap"
     if head == schema.HDF5_MAGIC:
@@ -107,7 +109,13 @@ def load_episode(path: str | Path) -> Episode:
     """Read an episode; a crash-truncated file loads with truncated=True."""
     path = Path(path)
     fmt = sniff_format(path)
-    return _load_mcap(path) if fmt == "mcap" else _load_hdf5(path)
+    try:
+        return _load_mcap(path) if fmt == "mcap" else _load_hdf5(path)
+    except EpisodeError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:  # corrupt in a way not checked for above
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise EpisodeError(f"{path}: unreadable {fmt.upper()} episode: {type(exc).__name__}: {first}") from None
 
 
 def find_episodes(paths: Iterable[str | Path]) -> list[Path]:

@@ -159,7 +159,17 @@ def test_missing_and_foreign_files(tmp_path, capsys):
     text.write_text("just some text\n")
     assert_usage_error(capsys, "inspect", str(text), match="not an MCAP or HDF5 file")
     assert_usage_error(capsys, "replay", str(tmp_path), match="is a directory")
-    assert list(tmp_path.iterdir()) == [text]
+    empty = tmp_path / "empty.hdf5"
+    empty.write_bytes(b"")
+    assert_usage_error(capsys, "inspect", str(empty), match="file is empty")
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)
+    assert_usage_error(capsys, "replay", str(junk), match="not a teleop episode")
+    other = tmp_path / "other.hdf5"
+    with h5py.File(other, "w") as f:
+        f["x"] = np.arange(3)
+    assert_usage_error(capsys, "inspect", str(other), match="missing group data/demo_0")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["notes.mcap", "empty.hdf5", "junk.mcap", "other.hdf5"])
 
 
 def test_hdf5_missing_dataset(recorded, tmp_path, capsys):
