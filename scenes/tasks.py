@@ -132,7 +132,6 @@ class Door(Task):
         grey = [0.4, 0.42, 0.45, 1.0]
         frame.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.015, 0.015, height / 2], pos=[0, -width / 2 - 0.02, height / 2], rgba=grey)
         frame.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.015, 0.015, height / 2], pos=[0, width / 2 + 0.02, height / 2], rgba=grey)
-        frame.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.015, width / 2 + 0.035, 0.015], pos=[0, 0, height + 0.015], rgba=grey)
         # The hinge is on the +y post; the door swings toward the robot (-x).
         door = frame.add_body(name="door", pos=[0, width / 2, 0])
         door.add_joint(name="door_hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], range=[0, 1.9], damping=0.5, frictionloss=0.05, armature=0.01)
