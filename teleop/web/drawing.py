@@ -28,8 +28,8 @@ from teleop.web.sim_thread import SimThread, Snapshot
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)
 ERROR_COLOR = (255, 60, 60)
-CAMERA_POSITION = (1.25, -0.95, 0.8)
-CAMERA_LOOK_AT = (0.4, 0.0, 0.15)
+CAMERA_POSITION = (1.45, -1.05, 0.95)
+CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 CAMERA_FOV = np.radians(50.0)  # vertical
 POSE_EPS = 1e-5
 

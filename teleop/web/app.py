@@ -1,0 +1,271 @@
+"""One served teleop session: the viser server and the threads around one Session.
+
+    control loop (SimThread)  --snapshots-->  drawing (SceneDrawer, <= 60 Hz)
+          ^  polls devices                    camera picture (CameraFeed, a few Hz)
+          |                                   panel text (Panel, 4 Hz) + status file
+    gizmo / panel / keyboard / SpaceMouse
+
+Browsers only ever talk to viser; viser's callbacks only write into device
+mailboxes. So any number of browsers can watch, and one closing mid-episode
+changes nothing for the recording. Saved episodes are checked for exact
+replay on a worker thread, so a save never stalls the real-time loop.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import viser
+
+from teleop.errors import UsageError
+from teleop.session import Session
+from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
+from teleop.web.drawing import SceneDrawer
+from teleop.web.net import check_port_free, page_url
+from teleop.web.panel import Panel, PanelDevice
+from teleop.web.sim_thread import SimThread, Snapshot
+
+STATUS_PERIOD_S = 0.2
+
+
+class WebApp:
+    """Serves `session` to browsers on host:port until `close()`."""
+
+    def __init__(
+        self,
+        session: Session,
+        devices: list,
+        device_problems: list[str],
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        verify: bool = True,
+        status_file: Path | None = None,
+        pos_speed: float = 0.15,
+        rot_speed: float = 0.8,
+        camera: bool = True,
+        log=print,
+    ) -> None:
+        self.session = session
+        self.devices = list(devices)
+        self.device_problems = list(device_problems)
+        self.host, self.port = host, port
+        self.verify = verify
+        self.status_file = status_file
+        self.log = log
+        self.camera_size = IMAGE_SIZE
+        self.verified: dict[str, bool | None] = {}  # episode file -> replays bit for bit (None: checking)
+        self._messages: list[str] = []
+        self._status_due = 0.0
+        self._closed = False
+        self.url = page_url(host, port)
+
+        check_port_free(host, port)
+        self.server = viser.ViserServer(host=host, port=port, label="teleop", verbose=False)
+        if self.server.get_port() != port:  # someone took it between our check and viser's bind
+            self.server.stop()
+            raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
+        self.server.gui.configure_theme(control_layout="fixed", control_width="large", show_logo=False, show_share_button=False)
+
+        self.gizmo = next((d for d in self.devices if d.kind == "gizmo"), None)
+        self.panel_device = PanelDevice()
+        self.sim = SimThread(session, [*self.devices, self.panel_device], log=log)
+        self.sim.on_saved = self._on_saved
+        self.drawer = SceneDrawer(self.server, self.sim, self.gizmo)
+        self.panel = Panel(self.server, self, tuple(session.scene.cameras), pos_speed, rot_speed)
+        self.camera: CameraFeed | None = None
+        if camera and session.scene.cameras:
+            self.camera = CameraFeed(
+                lambda: self.sim.snapshot, lambda: self.panel.camera_name, self.panel.show_image,
+                self._camera_failed, wanted=lambda: bool(self.server.get_clients()),
+            )
+        elif camera:
+            self.panel.camera_failed("this scene has no cameras")
+        self.server.on_client_connect(lambda _client: self._clients_changed())
+        self.server.on_client_disconnect(lambda _client: self._clients_changed())
+
+    # -- life cycle ------------------------------------------------------
+    def start(self) -> None:
+        self.sim.start()
+        self.drawer.start()
+        self.panel.start()
+        if self.camera is not None:
+            self.camera.start()
+
+    def close(self) -> list[Path]:
+        """Stop everything; an episode in progress is saved, marked incomplete. Returns its files."""
+        if self._closed:
+            return []
+        self._closed = True
+        self.panel.stop()
+        if self.camera is not None:
+            self.camera.stop()
+        self.drawer.stop()
+        self.sim.stop()
+        before = len(self.session.saved_paths)
+        try:
+            self.session.close()
+        finally:
+            for device in self.devices:
+                try:
+                    device.close()
+                except Exception:  # noqa: BLE001 - closing anyway
+                    pass
+            self.write_status()
+            self.server.stop()
+        return list(self.session.saved_paths[before:])
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the control loop ends (an error) or `timeout`; True if it ended."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.sim.alive:
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            time.sleep(0.2)
+        return True
+
+    # -- hooks from the threads ------------------------------------------
+    def _clients_changed(self) -> None:
+        count = len(self.server.get_clients())
+        if self.gizmo is not None:
+            self.gizmo.clients = count
+            if count == 0:
+                self.gizmo.release()
+
+    def _camera_failed(self, message: str) -> None:
+        self.note(message)
+        self.panel.camera_failed(message)
+
+    def set_speeds(self, pos_speed: float | None = None, rot_speed: float | None = None) -> None:
+        """Panel sliders: hold-to-move speeds of every keyboard and SpaceMouse."""
+        for device in self.devices:
+            if device.kind in ("gizmo", "script"):
+                continue
+            if pos_speed is not None and hasattr(device, "pos_speed"):
+                device.pos_speed = pos_speed
+            if rot_speed is not None and hasattr(device, "rot_speed"):
+                device.rot_speed = rot_speed
+
+    def note(self, message: str) -> None:
+        if not self._messages or self._messages[-1] != message:
+            self._messages.append(message)
+            del self._messages[:-20]
+
+    def notes(self) -> list[str]:
+        return [*self.session.messages[-5:], *self._messages[-5:]]
+
+    def _on_saved(self, paths: list[Path]) -> None:
+        """Called in the control loop when episodes were saved: check exact replay elsewhere."""
+        if not paths:
+            return
+        first = paths[0]
+        self.log(f"saved {', '.join(str(p) for p in paths)}")
+        if not self.verify:
+            return
+        self.verified[str(first)] = None
+        threading.Thread(target=self._verify, args=(first,), name="teleop-verify", daemon=True).start()
+
+    def _verify(self, path: Path) -> None:
+        from replay import verify_file
+
+        try:
+            result = verify_file(path, warn=False)
+            ok = bool(result.bit_exact)
+            self.verified[str(path)] = ok
+            if not ok:
+                self.note(f"{path.name} did not replay exactly (first difference at step {result.first_divergence_step})")
+        except Exception as exc:  # noqa: BLE001 - reported on the page
+            self.verified[str(path)] = False
+            self.note(f"{path.name}: replay check failed: {exc}")
+
+    def last_saved_line(self) -> str:
+        if not self.session.saved_paths:
+            return ""
+        path = self.session.saved_paths[-1]
+        for p in reversed(self.session.saved_paths):
+            if str(p) in self.verified:
+                path = p
+                break
+        state = self.verified.get(str(path), "unchecked")
+        word = {None: "checking exact replay…", True: "replays exactly ✓", False: "**does not replay exactly**"}.get(
+            state, "" if not self.verify else "")
+        return f"Last: `{Path(path).name}` {word}".rstrip()
+
+    # -- status (panel figures; a JSON file for scripts and tests) ---------
+    def status(self) -> dict:
+        snap: Snapshot = self.sim.snapshot
+        session = self.session
+        model = snap.model
+        objects = {}
+        for j in range(model.njnt):
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                adr = model.jnt_qposadr[j]
+                objects[model.body(model.jnt_bodyid[j]).name] = [round(float(v), 6) for v in snap.qpos[adr:adr + 3]]
+        return {
+            "url": self.url,
+            "pid": os.getpid(),
+            "scene": session.scene_name,
+            "robot": session.robot.name,
+            "seed": snap.seed,
+            "control_hz": session.control_hz,
+            "tick": snap.tick,
+            "sim_time": round(snap.sim_time, 6),
+            "loop_hz": round(self.sim.loop_hz(), 2),
+            "tick_ms": round(self.sim.compute_ms(), 3),
+            "headroom_x": round(self.sim.headroom(), 1),
+            "realtime_factor": round(self.sim.realtime_factor(), 4),
+            "slips": self.sim.slips,
+            "recording": snap.recording,
+            "episode_steps": snap.episode_steps,
+            "episodes_saved": snap.episodes_saved,
+            "episodes_discarded": snap.episodes_discarded,
+            "saved_files": [str(p) for p in session.saved_paths],
+            "verified": dict(self.verified),
+            "success": snap.success,
+            "ee_pos": [[round(float(v), 6) for v in p] for p, _ in snap.ee],
+            "target_pos": [[round(float(v), 6) for v in p] for p, _ in snap.targets],
+            "target_quat": [[round(float(v), 6) for v in q] for _, q in snap.targets],
+            "gripper_open": list(snap.gripper_open),
+            "ik_error_mm": [round(float(e) * 1000, 3) for e in snap.tracking_error_m],
+            "ik_failures": snap.ik_failures,
+            "objects": objects,
+            "clients": len(self.server.get_clients()),
+            "web_update_ms": round(self.drawer.update_ms(), 3),
+            "web_updates": self.drawer.updates,
+            "latency_ms": None if self.drawer.latency_ms is None else round(self.drawer.latency_ms, 2),
+            "gizmo_drags": getattr(self.gizmo, "drags", 0),
+            "camera_frames": self.camera.frames if self.camera is not None else 0,
+            "camera_problem": self.camera.problem if self.camera is not None else None,
+            "devices": {d.name: self.sim.device_problems.get(d.name) or d.status() for d in self.devices},
+            "devices_not_started": list(self.device_problems),
+            "notes": self.notes(),
+            "error": self.sim.error,
+        }
+
+    def tick_status(self) -> None:
+        """Write the status file if one was asked for, at most every STATUS_PERIOD_S."""
+        now = time.monotonic()
+        if self.status_file is None or now < self._status_due:
+            return
+        self._status_due = now + STATUS_PERIOD_S
+        self.write_status()
+
+    def write_status(self) -> None:
+        if self.status_file is None:
+            return
+        tmp = self.status_file.with_name(self.status_file.name + ".tmp")
+        tmp.write_text(json.dumps(self.status(), default=_jsonable))
+        os.replace(tmp, self.status_file)
+
+
+def _jsonable(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (Path,)):
+        return str(value)
+    raise TypeError(type(value).__name__)

@@ -1,0 +1,217 @@
+"""Driving the page from a headless Chromium (Playwright): shared by the tests and the bench.
+
+Uses the system's Chromium (Debian: /usr/bin/chromium); nothing is downloaded.
+Two things need care and live here:
+
+- viser's client talks to the server from a Web Worker, which Playwright's
+  websocket events do not see. `COUNT_FRAMES` wraps the page's Worker
+  constructor so the worker's WebSocket counts the messages it receives
+  (`self.__wsFrames`, read with worker.evaluate).
+- To drag the gizmo we need where a world point lands on screen: `project`
+  does the pinhole projection of viser's initial camera (position, look-at,
+  vertical field of view, z up) onto the canvas' box.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+CHROMIUM_ARGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+)
+
+COUNT_FRAMES = r"""
+(() => {
+  const Original = window.Worker;
+  window.Worker = function (scriptUrl, options) {
+    const patch = `(() => { const W = self.WebSocket; self.__wsFrames = 0;
+      class Counting extends W { constructor(...a) { super(...a);
+        this.addEventListener('message', () => { self.__wsFrames += 1; }); } }
+      self.WebSocket = Counting; })();`;
+    const load = options && options.type === 'module'
+      ? `\nimport ${JSON.stringify(String(scriptUrl))};`
+      : `\nimportScripts(${JSON.stringify(String(scriptUrl))});`;
+    const blob = new Blob([patch + load], { type: 'text/javascript' });
+    return new Original(URL.createObjectURL(blob), options);
+  };
+  window.Worker.prototype = Original.prototype;
+})();
+"""
+
+
+def chromium_path() -> str | None:
+    """The system Chromium, or None (tests skip, the bench reports nothing)."""
+    for candidate in (os.environ.get("TELEOP_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium"),
+                      shutil.which("chromium-browser"), shutil.which("google-chrome")):
+        if candidate and os.path.exists(candidate):
+            return candidate
+    return None
+
+
+def launch(playwright):
+    """A headless system Chromium (raises FileNotFoundError when there is none)."""
+    path = chromium_path()
+    if path is None:
+        raise FileNotFoundError("no Chromium found (Debian: apt-get install chromium)")
+    return playwright.chromium.launch(executable_path=path, args=list(CHROMIUM_ARGS))
+
+
+def open_page(browser, url: str, count_frames: bool = False, size=(1280, 800), timeout_s: float = 60.0):
+    """Open the viser page and wait until the scene canvas is there."""
+    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
+    if count_frames:
+        page.add_init_script(COUNT_FRAMES)
+    page.goto(url, timeout=timeout_s * 1000)
+    page.wait_for_selector("canvas", timeout=timeout_s * 1000)
+    return page
+
+
+def frames_received(page) -> int:
+    """WebSocket messages the page's viser worker received so far (needs count_frames=True)."""
+    total = 0
+    for worker in page.workers:
+        try:
+            total += int(worker.evaluate("self.__wsFrames || 0"))
+        except Exception:  # noqa: BLE001 - a worker that went away counts nothing
+            pass
+    return total
+
+
+def dismiss_toasts(page) -> None:
+    """Close viser's notifications (headless Chromium gets a 'software WebGL' one)."""
+    for button in page.locator(".mantine-Notification-closeButton").all():
+        try:
+            button.click(timeout=1000)
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+
+def canvas_box(page) -> dict:
+    """The 3D canvas' box on the page (the largest canvas: the panel has small ones)."""
+    boxes = [c.bounding_box() for c in page.locator("canvas").all()]
+    boxes = [b for b in boxes if b]
+    return max(boxes, key=lambda b: b["width"] * b["height"])
+
+
+def project(point, box: dict, position, look_at, fov_y: float, up=(0.0, 0.0, 1.0)) -> tuple[float, float]:
+    """Page pixel where world `point` appears, for a camera at `position` looking at `look_at`."""
+    position, look_at, up = (np.asarray(v, dtype=float) for v in (position, look_at, up))
+    forward = look_at - position
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    d = np.asarray(point, dtype=float) - position
+    depth = float(d @ forward)
+    half_h = np.tan(fov_y / 2.0)
+    aspect = box["width"] / box["height"]
+    ndc_x = float(d @ right) / (depth * half_h * aspect)
+    ndc_y = float(d @ cam_up) / (depth * half_h)
+    return box["x"] + (ndc_x + 1.0) / 2.0 * box["width"], box["y"] + (1.0 - ndc_y) / 2.0 * box["height"]
+
+
+def click_button(page, label: str, timeout_s: float = 10.0) -> None:
+    """Click the panel button whose text is exactly `label`."""
+    page.get_by_role("button", name=label, exact=True).first.click(timeout=timeout_s * 1000)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServeProcess:
+    """`python -m teleop serve ...` in a subprocess, observed through its status file."""
+
+    def __init__(self, args: list[str], workdir: Path, port: int | None = None, env: dict | None = None,
+                 ready_timeout_s: float = 90.0) -> None:
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.status_file = Path(workdir) / f"serve-status-{self.port}.json"
+        self.log_file = Path(workdir) / f"serve-{self.port}.log"
+        command = [sys.executable, "-m", "teleop", "serve", "--port", str(self.port),
+                   "--status-file", str(self.status_file), *args]
+        self._log = open(self.log_file, "w")
+        self.proc = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT,
+                                     env={**os.environ, **(env or {})}, cwd=Path(__file__).resolve().parents[2])
+        deadline = time.monotonic() + ready_timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"teleop serve exited with {self.proc.returncode}: {self.log()[-2000:]}")
+            status = self.status(missing_ok=True)
+            if status and status.get("tick", 0) > 0:
+                return
+            time.sleep(0.2)
+        self.stop()
+        raise TimeoutError(f"teleop serve did not start in {ready_timeout_s} s: {self.log()[-2000:]}")
+
+    def status(self, missing_ok: bool = False) -> dict:
+        try:
+            return json.loads(self.status_file.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            if missing_ok:
+                return {}
+            raise
+
+    def wait_for(self, predicate, timeout_s: float = 20.0, what: str = "condition") -> dict:
+        """Poll the status until `predicate(status)` holds; returns that status."""
+        deadline = time.monotonic() + timeout_s
+        status = {}
+        while time.monotonic() < deadline:
+            status = self.status(missing_ok=True)
+            if status and predicate(status):
+                return status
+            time.sleep(0.1)
+        raise TimeoutError(f"timed out waiting for {what}; last status: {json.dumps(status)[:1500]}")
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_file.read_text()
+
+    def stop(self, sig: int = signal.SIGINT, timeout_s: float = 30.0) -> int:
+        """Stop as Ctrl-C does; returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+
+def drag_gizmo_axis(page, target_pos, target_quat, axis: int = 0, pixels: float = 80.0, steps: int = 20,
+                    step_s: float = 0.03) -> None:
+    """Grab the gizmo's `axis` arrow (in the target's frame) and drag it `pixels` along its screen direction."""
+    import mujoco
+
+    from teleop.web.drawing import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION, GIZMO_SCALE
+
+    rot = np.empty(9)
+    mujoco.mju_quat2Mat(rot, np.asarray(target_quat, dtype=float))
+    direction = rot.reshape(3, 3)[:, axis]
+    box = canvas_box(page)
+    view = (box, CAMERA_POSITION, CAMERA_LOOK_AT, CAMERA_FOV)
+    grab = np.array(project(np.asarray(target_pos) + 0.75 * GIZMO_SCALE * direction, *view))
+    ahead = np.array(project(np.asarray(target_pos) + 1.0 * GIZMO_SCALE * direction, *view))
+    along = (ahead - grab) / max(np.linalg.norm(ahead - grab), 1e-9)
+    page.mouse.move(*grab)
+    time.sleep(0.2)
+    page.mouse.down()
+    for i in range(1, steps + 1):
+        page.mouse.move(*(grab + along * pixels * i / steps))
+        time.sleep(step_s)
+    page.mouse.up()

@@ -1,0 +1,245 @@
+"""The control panel: buttons that drive the session and the figures an operator watches.
+
+Buttons do not touch the Session: they queue Commands (gripper changes and
+episode events) on `PanelDevice`, which the control loop polls like any other
+device, so a click lands between two ticks and is recorded with the step it
+affected. The panel's text is refreshed a few times a second from snapshots,
+and only sent to browsers when it changed.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import viser
+
+from teleop.command import Command
+
+REFRESH_HZ = 4.0
+POS_SPEED_RANGE = (0.01, 0.5)  # m/s
+ROT_SPEED_RANGE = (0.05, 3.0)  # rad/s
+LABEL_HOLD_S = 0.6  # after a click, the button shows the new label before the loop confirms it
+
+
+class PanelDevice:
+    """Commands from the panel's buttons, handed to the control loop at its next tick."""
+
+    kind = "panel"
+
+    def __init__(self, name: str = "panel") -> None:
+        self.name = name
+        self._queue: collections.deque[Command] = collections.deque()
+
+    def push(self, command: Command) -> None:
+        command.source = self.name
+        self._queue.append(command)
+
+    def start(self) -> None:
+        pass
+
+    def poll(self, view, dt: float) -> list[Command]:
+        out = []
+        while self._queue:
+            out.append(self._queue.popleft())
+        return out
+
+    def status(self) -> str:
+        return "ready"
+
+    @property
+    def finished(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        self._queue.clear()
+
+
+def _fmt(value: float | None, unit: str, digits: int = 1) -> str:
+    return "–" if value is None else f"{value:.{digits}f} {unit}"
+
+
+class Panel:
+    """Builds the GUI on `server` and keeps its figures current."""
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        app,  # teleop.web.app.WebApp: sim, drawer, devices, problems, figures
+        cameras: tuple[str, ...],
+        pos_speed: float,
+        rot_speed: float,
+    ) -> None:
+        self.server = server
+        self.app = app
+        self.device: PanelDevice = app.panel_device
+        self._label_hold_until = 0.0
+        self._texts: dict[str, str] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="teleop-panel", daemon=True)
+        gui = server.gui
+        snap = app.sim.snapshot
+        recording_on = app.session.record is not None
+
+        self.task_md = gui.add_markdown(self._task_text(snap))
+        with gui.add_folder("Episode"):
+            self.record_btn = gui.add_button("Record", color="red", disabled=not recording_on,
+                                             hint="start recording an episode; click Stop to save it")
+            self.save_btn = gui.add_button("Save", disabled=not recording_on, hint="save the episode being recorded")
+            self.discard_btn = gui.add_button("Discard", disabled=not recording_on, hint="drop the episode being recorded")
+            self.reset_btn = gui.add_button("Reset", hint="new object placement (next seed); saves an episode in progress")
+            self.episode_md = gui.add_markdown(self._episode_text(snap))
+        self.gripper_buttons: list[tuple[viser.GuiButtonHandle, viser.GuiButtonHandle]] = []
+        for arm in range(app.session.n_arms):
+            title = "Gripper" if app.session.n_arms == 1 else f"Gripper (arm {arm})"
+            with gui.add_folder(title):
+                self.gripper_buttons.append((gui.add_button("Open"), gui.add_button("Close")))
+        with gui.add_folder("Speed (keyboard, SpaceMouse)"):
+            self.pos_slider = gui.add_slider("Position (m/s)", min=POS_SPEED_RANGE[0], max=POS_SPEED_RANGE[1],
+                                             step=0.01, initial_value=float(np.clip(pos_speed, *POS_SPEED_RANGE)))
+            self.rot_slider = gui.add_slider("Rotation (rad/s)", min=ROT_SPEED_RANGE[0], max=ROT_SPEED_RANGE[1],
+                                             step=0.05, initial_value=float(np.clip(rot_speed, *ROT_SPEED_RANGE)))
+        with gui.add_folder("Camera"):
+            self.camera_dropdown = gui.add_dropdown("Camera", options=cameras or ("none",),
+                                                    initial_value=cameras[0] if cameras else "none")
+            w, h = app.camera_size
+            self.camera_image = gui.add_image(np.zeros((h, w, 3), dtype=np.uint8), format="jpeg", jpeg_quality=80)
+            self.camera_md = gui.add_markdown("")
+        with gui.add_folder("Devices"):
+            self.devices_md = gui.add_markdown(self._devices_text())
+        with gui.add_folder("Loop"):
+            self.loop_md = gui.add_markdown(self._loop_text(snap))
+        self.notes_md = gui.add_markdown("")
+        self._wire()
+
+    # -- callbacks -------------------------------------------------------
+    def _wire(self) -> None:
+        push = self.device.push
+
+        @self.record_btn.on_click
+        def _(_) -> None:
+            recording = self.app.sim.snapshot.recording
+            push(Command(events=("save",) if recording else ("start",)))
+            self._hold_label("Record" if recording else "Stop")
+
+        @self.save_btn.on_click
+        def _(_) -> None:
+            push(Command(events=("save",)))
+            self._hold_label("Record")
+
+        @self.discard_btn.on_click
+        def _(_) -> None:
+            push(Command(events=("discard",)))
+            self._hold_label("Record")
+
+        @self.reset_btn.on_click
+        def _(_) -> None:
+            push(Command(events=("reset",)))
+            self._hold_label("Record")
+
+        for arm, (open_btn, close_btn) in enumerate(self.gripper_buttons):
+            open_btn.on_click(lambda _, arm=arm: push(Command(gripper="open", arm=arm)))
+            close_btn.on_click(lambda _, arm=arm: push(Command(gripper="close", arm=arm)))
+
+        @self.pos_slider.on_update
+        def _(_) -> None:
+            self.app.set_speeds(pos_speed=float(self.pos_slider.value))
+
+        @self.rot_slider.on_update
+        def _(_) -> None:
+            self.app.set_speeds(rot_speed=float(self.rot_slider.value))
+
+    def _hold_label(self, label: str) -> None:
+        self.record_btn.label = label
+        self._label_hold_until = time.monotonic() + LABEL_HOLD_S
+
+    @property
+    def camera_name(self) -> str:
+        return str(self.camera_dropdown.value)
+
+    def show_image(self, image: np.ndarray) -> None:
+        self.camera_image.image = image
+
+    def camera_failed(self, message: str) -> None:
+        self.camera_image.visible = False
+        self.camera_md.content = f"*{message}*"
+
+    # -- text ------------------------------------------------------------
+    def _task_text(self, snap) -> str:
+        s = self.app.session
+        state = "**succeeding**" if snap.success else "not yet"
+        return f"**Task:** {s.scene.task.text}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
+
+    def _episode_text(self, snap) -> str:
+        app = self.app
+        if app.session.record is None:
+            head = "Not recording: start with `--record DIR` to record episodes."
+        elif snap.recording:
+            head = f"**● Recording** step {snap.episode_steps} ({snap.episode_steps * app.session.dt:.1f} s)"
+        else:
+            head = f"Ready to record into `{app.session.record.directory}`"
+        lines = [head, f"Saved: **{snap.episodes_saved}** · Discarded: **{snap.episodes_discarded}**"]
+        last = app.last_saved_line()
+        if last:
+            lines.append(last)
+        return "  \n".join(lines)
+
+    def _devices_text(self) -> str:
+        rows = []
+        for d in self.app.devices:
+            problem = self.app.sim.device_problems.get(d.name)
+            rows.append(f"- **{d.name}**: {problem or d.status()}")
+        for line in self.app.device_problems:
+            name, _, reason = line.partition(": ")
+            rows.append(f"- **{name}**: not started ({reason})")
+        return "\n".join(rows) or "no devices"
+
+    def _loop_text(self, snap) -> str:
+        app = self.app
+        sim = app.sim
+        errors = ", ".join(f"{e * 1000:.1f}" for e in snap.tracking_error_m)
+        return "  \n".join([
+            f"Loop: **{sim.loop_hz():.1f} Hz** (target {app.session.control_hz:g}) · tick {sim.compute_ms():.2f} ms · "
+            f"headroom {sim.headroom():.0f}x",
+            f"IK error: **{errors} mm** · IK failures {snap.ik_failures}",
+            f"Latency (input → drawn): **{_fmt(app.drawer.latency_ms, 'ms')}** · scene update {app.drawer.update_ms():.2f} ms",
+            f"Browsers: {len(self.server.get_clients())}",
+        ])
+
+    def _set(self, key: str, handle, text: str) -> None:
+        if self._texts.get(key) != text:
+            self._texts[key] = text
+            handle.content = text
+
+    def refresh(self) -> None:
+        snap = self.app.sim.snapshot
+        self._set("task", self.task_md, self._task_text(snap))
+        self._set("episode", self.episode_md, self._episode_text(snap))
+        self._set("devices", self.devices_md, self._devices_text())
+        self._set("loop", self.loop_md, self._loop_text(snap))
+        notes = self.app.notes()
+        self._set("notes", self.notes_md, "  \n".join(f"*{n}*" for n in notes[-4:]))
+        if time.monotonic() > self._label_hold_until:
+            label = "Stop" if snap.recording else "Record"
+            if self.record_btn.label != label:
+                self.record_btn.label = label
+
+    # -- thread ----------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0 / REFRESH_HZ):
+            try:
+                self.refresh()
+                self.app.tick_status()
+            except Exception as exc:  # noqa: BLE001 - the panel must not end the session
+                print(f"panel refresh failed: {type(exc).__name__}: {exc}")

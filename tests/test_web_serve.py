@@ -1,0 +1,233 @@
+"""`teleop serve` in a real headless Chromium: the page, the gizmo, the buttons, the recording.
+
+One server (a `python -m teleop serve` subprocess recording into a temp dir)
+and one browser serve the whole module; the server's state is read from its
+status file. Needs Debian's chromium (or TELEOP_CHROMIUM) and Playwright's
+Python package; nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+from teleop.web import headless  # noqa: E402
+
+pytestmark = pytest.mark.skipif(headless.chromium_path() is None, reason="no Chromium (apt-get install chromium)")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def record_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("episodes")
+
+
+@pytest.fixture(scope="module")
+def server(record_dir, tmp_path_factory):
+    proc = headless.ServeProcess(["--record", str(record_dir), "--device", "gizmo"], tmp_path_factory.mktemp("serve"))
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = headless.launch(p)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def page(server, browser):
+    page = headless.open_page(browser, server.url, count_frames=True)
+    server.wait_for(lambda s: s["clients"] >= 1, what="the page to connect")
+    time.sleep(2.0)  # first meshes drawn
+    headless.dismiss_toasts(page)
+    yield page
+    page.close()
+
+
+def episode_files(directory: Path) -> list[Path]:
+    return sorted(p for p in directory.iterdir() if p.suffix in (".mcap", ".hdf5"))
+
+
+def drag_x(page, server, pixels: float = 80.0) -> tuple[np.ndarray, dict]:
+    """Drag the gizmo along its x arrow; returns the target before and the status once it moved."""
+    before = server.status()
+    target = np.array(before["target_pos"][0])
+    headless.drag_gizmo_axis(page, target, before["target_quat"][0], axis=0, pixels=pixels)
+    after = server.wait_for(lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - target) > 0.03,
+                            what="the gizmo drag to move the target")
+    return target, after
+
+
+def canvas_pixels(page, path: Path) -> tuple[np.ndarray, dict, np.ndarray]:
+    """Screenshot to `path`; returns (canvas crop, canvas box, whole image) as float RGB."""
+    from PIL import Image
+
+    page.screenshot(path=str(path))
+    box = headless.canvas_box(page)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(float)
+    crop = image[int(box["y"]):int(box["y"] + box["height"]), int(box["x"]):int(box["x"] + box["width"])]
+    return crop, box, image
+
+
+def test_page_shows_the_robot(page, tmp_path):
+    from teleop.web.drawing import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION
+
+    shot = tmp_path / "page.png"
+    deadline = time.monotonic() + 40  # software WebGL: the meshes take a while to appear
+    while True:
+        canvas, box, image = canvas_pixels(page, shot)
+        colors = len(np.unique(canvas.reshape(-1, 3).astype(np.uint8), axis=0))
+        if (canvas.std() > 20 and colors > 500) or time.monotonic() > deadline:
+            break
+        time.sleep(1.0)
+    assert canvas.std() > 20 and colors > 500, f"canvas looks blank ({colors} colours, std {canvas.std():.1f}): {shot}"
+    # The robot's links are light grey: there must be such pixels where its upper arm is drawn.
+    x, y = headless.project((0.0, 0.0, 0.55), box, CAMERA_POSITION, CAMERA_LOOK_AT, CAMERA_FOV)
+    patch = image[int(y) - 15:int(y) + 15, int(x) - 15:int(x) + 15]
+    assert (patch.min(axis=2) > 170).mean() > 0.3, f"no robot-coloured pixels where the arm should be: {shot}"
+    # and the table (tan) below the arm
+    tx, ty = headless.project((0.45, 0.25, 0.0), box, CAMERA_POSITION, CAMERA_LOOK_AT, CAMERA_FOV)
+    r, g, b = image[int(ty), int(tx)]
+    assert r > b + 20, f"no table where it should be: {shot}"
+
+
+def test_drag_gizmo_moves_the_arm(page, server):
+    target, after = drag_x(page, server)
+    assert after["target_pos"][0][0] > target[0] + 0.03  # dragged along +x
+    moved = server.wait_for(lambda s: abs(s["ee_pos"][0][0] - s["target_pos"][0][0]) < 0.01,
+                            what="the end effector to follow the target")
+    assert moved["ee_pos"][0][0] > target[0] + 0.03
+    assert moved["latency_ms"] is not None
+
+
+def test_record_drag_save_replays_exactly(page, server, record_dir):
+    saved_before = server.status()["episodes_saved"]
+    files_before = set(episode_files(record_dir))
+    headless.click_button(page, "Record")
+    server.wait_for(lambda s: s["recording"], what="recording to start")
+    page.get_by_role("button", name="Stop", exact=True).wait_for(timeout=5000)
+    drag_x(page, server, pixels=-60)
+    server.wait_for(lambda s: s["episode_steps"] > 20, what="some recorded steps")
+    headless.click_button(page, "Save")
+    status = server.wait_for(lambda s: s["episodes_saved"] == saved_before + 1 and not s["recording"], what="the save")
+    new = sorted(set(episode_files(record_dir)) - files_before)
+    assert len(new) == 1, new
+    result = subprocess.run([sys.executable, "-m", "teleop", "replay", str(new[0]), "--verify"], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    checked = server.wait_for(lambda s: s["verified"].get(str(new[0])) is not None, what="the server's replay check")
+    assert checked["verified"][str(new[0])] is True
+    assert status["episodes_saved"] == saved_before + 1
+    page.get_by_role("button", name="Record", exact=True).wait_for(timeout=5000)
+
+
+def test_discard_leaves_no_episode(page, server, record_dir):
+    files_before = set(episode_files(record_dir))
+    discarded = server.status()["episodes_discarded"]
+    headless.click_button(page, "Record")
+    server.wait_for(lambda s: s["recording"] and s["episode_steps"] > 10, what="recording")
+    headless.click_button(page, "Discard")
+    server.wait_for(lambda s: s["episodes_discarded"] == discarded + 1 and not s["recording"], what="the discard")
+    time.sleep(0.3)
+    assert set(episode_files(record_dir)) == files_before
+
+
+def test_gripper_buttons(page, server):
+    headless.click_button(page, "Close")
+    server.wait_for(lambda s: s["gripper_open"] == [False], what="the gripper to close")
+    headless.click_button(page, "Open")
+    server.wait_for(lambda s: s["gripper_open"] == [True], what="the gripper to open")
+
+
+def test_reset_changes_object_placement(page, server):
+    before = server.status()
+    headless.click_button(page, "Reset")
+    after = server.wait_for(lambda s: s["seed"] == before["seed"] + 1, what="the reset")
+    cube_before, cube_after = np.array(before["objects"]["cube"]), np.array(after["objects"]["cube"])
+    assert np.linalg.norm(cube_after[:2] - cube_before[:2]) > 0.01
+    # the gizmo follows the reset target (the arm is home again)
+    server.wait_for(lambda s: np.linalg.norm(np.array(s["ee_pos"][0]) - np.array(s["target_pos"][0])) < 0.01,
+                    what="the arm to settle at home")
+
+
+def test_camera_picture_or_a_clear_note(server):
+    status = server.wait_for(lambda s: s["camera_frames"] > 0 or s["camera_problem"], what="a camera picture")
+    assert status["camera_frames"] > 0 or "MUJOCO_GL" in status["camera_problem"]
+
+
+def test_two_pages_see_the_same_session(page, server, browser):
+    second = headless.open_page(browser, server.url, count_frames=True)
+    try:
+        server.wait_for(lambda s: s["clients"] >= 2, what="two browsers")
+        time.sleep(1.0)
+        counts = [headless.frames_received(p) for p in (page, second)]
+        time.sleep(1.5)
+        rates = [(headless.frames_received(p) - c) / 1.5 for p, c in zip((page, second), counts)]
+        assert min(rates) > 5, f"a page gets no updates: {rates} frames/s"
+        drag_x(second, server, pixels=60)  # the second page drives the same arm
+        status = server.status()
+        assert status["loop_hz"] > 0.8 * status["control_hz"]
+    finally:
+        second.close()
+
+
+def test_closing_the_page_mid_episode_keeps_recording(server, browser, record_dir):
+    first = headless.open_page(browser, server.url)
+    server.wait_for(lambda s: s["clients"] >= 1, what="the page")
+    headless.dismiss_toasts(first)
+    saved = server.status()["episodes_saved"]
+    headless.click_button(first, "Record")
+    server.wait_for(lambda s: s["recording"], what="recording")
+    first.close()
+    steps = server.status()["episode_steps"]
+    later = server.wait_for(lambda s: s["episode_steps"] > steps + 30, what="steps to keep coming")
+    assert later["recording"]
+    other = headless.open_page(browser, server.url)
+    try:
+        headless.dismiss_toasts(other)
+        other.get_by_role("button", name="Stop", exact=True).wait_for(timeout=10000)
+        headless.click_button(other, "Stop")  # Stop saves
+        status = server.wait_for(lambda s: s["episodes_saved"] == saved + 1 and not s["recording"], what="the save")
+        newest = Path(status["saved_files"][-1])
+        assert newest.exists() and newest.parent == record_dir
+        server.wait_for(lambda s: s["verified"].get(str(newest)) is True, timeout_s=60, what="exact replay")
+    finally:
+        other.close()
+
+
+def _addresses() -> list[str]:
+    out = ["127.0.0.2"]
+    try:
+        words = subprocess.run(["hostname", "-I"], capture_output=True, text=True, timeout=5).stdout.split()
+        out += [w for w in words if ":" not in w and not w.startswith("127.")]
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out
+
+
+def test_listens_on_loopback_only(server):
+    with socket.create_connection(("127.0.0.1", server.port), timeout=3):
+        pass
+    for address in _addresses():
+        with pytest.raises(OSError):
+            with socket.create_connection((address, server.port), timeout=3):
+                pass
+
+
+def test_realtime_with_browsers(server):
+    status = server.status()
+    assert status["error"] is None
+    assert 0.9 < status["realtime_factor"] < 1.1
+    assert status["headroom_x"] > 2
