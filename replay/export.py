@@ -13,7 +13,6 @@ LeRobot is an optional extra, imported only when an export starts.
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
 import signal
@@ -51,6 +50,7 @@ class ExportOptions:
     video: bool = True
     append: bool = False
     progress: bool = True
+    on_episode: Callable[[int, int], None] | None = None  # (episodes, frames) written so far, after each save
 
 
 @dataclass
@@ -196,9 +196,6 @@ def _fps(hz: float) -> int:
 
 def _lerobot():
     """The LeRobotDataset class, or a one-line ExportError saying which extra to install."""
-    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # export is local: never wait on the Hub
-    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1: errors only, not a banner per episode
-    os.environ.setdefault("HF_DATASETS_DISABLE_PROGRESS_BARS", "1")  # ours is the one progress bar
     try:
         from lerobot.datasets import LeRobotDataset
     except ImportError:
@@ -275,8 +272,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         raise ExportError("--repo-id must not be empty")
     if opts.out.exists() and not opts.append:
         raise ExportError(f"--out {opts.out} already exists (add --append to add episodes to it, or choose a new directory)")
-    LeRobotDataset = _lerobot()
-
+    if opts.append and opts.out.exists() and not (opts.out / "meta" / "info.json").is_file():
+        raise ExportError(f"--append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
     entries = _scan(paths)
     summary = ExportSummary(out=opts.out)
     chosen = []
@@ -294,6 +291,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     robot_type, _, hz = chosen[0].signature
     fps = summary.fps = _fps(hz)
     cameras = summary.cameras = _resolve_cameras(opts.cameras, chosen[0].cameras)
+    LeRobotDataset = _lerobot()  # after the input checks: they answer at once, LeRobot takes seconds to import
 
     first = load_episode(chosen[0].path)
     model = first.build_model()
@@ -364,6 +362,8 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
                 raise
             summary.episodes += 1
             summary.frames += ep.steps
+            if opts.on_episode is not None:
+                opts.on_episode(summary.episodes, summary.frames)
     finally:
         bar.close()
 

@@ -36,17 +36,21 @@ class RenderSettings:
     no_multisampling: bool = True
     no_reflections: bool = True  # a reflective floor renders the scene twice
     finite_planes: bool = True  # infinite planes are drawn as 40k quads
+    size_buffer: bool = True  # offscreen buffer = image size, not the model's (often 640x480)
 
 
 TUNED = RenderSettings()
-DEFAULTS = RenderSettings(False, False, False, False)
+DEFAULTS = RenderSettings(False, False, False, False, False)  # MuJoCo's own settings, for comparison
 
 
 def tune_model(model: mujoco.MjModel, width: int, height: int, settings: RenderSettings = TUNED) -> mujoco.MjModel:
     """A copy of `model` set up for fast offscreen rendering at width x height."""
     m = copy.copy(model)
-    m.vis.global_.offwidth = int(width)
-    m.vis.global_.offheight = int(height)
+    if settings.size_buffer:
+        m.vis.global_.offwidth, m.vis.global_.offheight = int(width), int(height)
+    else:  # keep the model's buffer, grown if the image needs more
+        m.vis.global_.offwidth = max(int(width), int(m.vis.global_.offwidth))
+        m.vis.global_.offheight = max(int(height), int(m.vis.global_.offheight))
     if settings.no_shadows:
         m.vis.quality.shadowsize = 0
         m.light_castshadow[:] = 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -39,7 +40,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_export)
 
 
+def quiet_environment() -> None:
+    """Before LeRobot loads: export is local (never wait on the Hub), and ours is the one progress bar."""
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("HF_DATASETS_DISABLE_PROGRESS_BARS", "1")
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 encoder: errors only, no banner per video
+
+
 def cmd_export(args: argparse.Namespace) -> int:
+    quiet_environment()
     from replay.export import ExportError, ExportOptions, export_dataset, parse_cameras, parse_image_size
 
     try:

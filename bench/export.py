@@ -1,0 +1,93 @@
+"""Export speed: offscreen rendering from replayed states, and the whole LeRobot export.
+
+Figures (`measure`), on real recordings (lift, Panda, 30 Hz, the scripted pick):
+  render_fps            frames/s per camera at 224x224 with the export's tuned renderer
+                        (no shadows, no MSAA, no reflections, finite floor, buffer = image);
+                        includes mj_setState + mj_forward per frame; median over cameras
+                        front, overhead, wrist and repetitions
+  render_fps_default    the same with MuJoCo's own settings (shadows, 4x MSAA, reflections,
+                        infinite floor, the model's 640x480 buffer), for comparison
+  export_frames_per_s   `teleop export` end to end (replay, rendering front + wrist at
+                        224x224, LeRobot add_frame/save_episode, AV1 video encoding,
+                        finalize) in dataset frames per second of wall time, best of 2 runs
+The GL backend is MUJOCO_GL if set, else EGL, else OSMesa (on a CPU both are Mesa llvmpipe).
+"""
+
+from __future__ import annotations
+
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "scenes" / "scripts" / "lift_pick.json"
+SIZE = (224, 224)
+
+
+def record(directory: Path, episodes: int) -> list[Path]:
+    """Record scripted lift episodes with the real CLI (what users export)."""
+    cmd = [sys.executable, "-m", "teleop", "run", "--device", f"script:{SCRIPT}", "--scene", "lift",
+           "--record", str(directory), "--episodes", str(episodes), "--no-verify", "--json"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    if done.returncode != 0:
+        raise RuntimeError(f"recording for the export bench failed: {done.stderr.strip()[-500:]}")
+    return sorted(directory.glob("*.mcap"))
+
+
+def render_rate(path: Path, cameras: list[str], settings, frames: int | None = None, repeats: int = 3) -> float:
+    """Median frames/s per camera rendering the episode's states (setState + forward + render + readback)."""
+    from replay import load_episode, replay_states
+    from replay.render import FastRenderer
+
+    ep = load_episode(path)
+    model = ep.build_model()
+    rates = []
+    with FastRenderer(model, *SIZE, cameras, settings=settings) as renderer:
+        for name in cameras:
+            for _ in range(repeats):
+                n = 0
+                t0 = time.perf_counter()
+                for k, data in replay_states(ep, model):
+                    renderer.render(data, name)
+                    n += 1
+                    if frames is not None and n >= frames:
+                        break
+                rates.append(n / (time.perf_counter() - t0))
+    return statistics.median(rates)
+
+
+def export_rate(paths: list[Path], out: Path) -> float:
+    from replay.export import ExportOptions, export_dataset
+
+    opts = ExportOptions(out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, progress=False)
+    summary = export_dataset(paths, opts, log=lambda line: None)
+    return summary.frames_per_s
+
+
+def measure(quick: bool) -> dict[str, float]:
+    from replay.export import _lerobot
+    from replay.render import DEFAULTS, TUNED
+
+    with tempfile.TemporaryDirectory(prefix="bench_export_") as tmp:
+        tmp = Path(tmp)
+        paths = record(tmp / "episodes", 1 if quick else 3)
+        cameras = ["front", "overhead", "wrist"]
+        render = render_rate(paths[0], cameras, TUNED, repeats=1 if quick else 3)
+        default = render_rate(paths[0], cameras, DEFAULTS, frames=10 if quick else 30, repeats=1)
+        out = {"render_fps": round(render, 1), "render_fps_default": round(default, 1)}
+        try:
+            _lerobot()
+        except ValueError:  # LeRobot not installed: the export figure cannot be taken
+            return out
+        runs = [export_rate(paths, tmp / f"dataset{i}") for i in range(1 if quick else 2)]
+        out["export_frames_per_s"] = round(max(runs), 1)
+    return out
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(measure("--quick" in sys.argv)))

@@ -1,0 +1,338 @@
+"""`teleop export`: real recordings (the real `teleop run --record`), real LeRobot, real MuJoCo rendering.
+
+Episodes are recorded once per module at 15 Hz (short, so exports stay quick):
+two scripted picks that succeed and one short move that does not. Images are
+64x64 to keep video encoding and decoding cheap.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import mujoco
+import numpy as np
+import pytest
+
+from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json, write_script
+
+pytest.importorskip("lerobot", reason="export tests need LeRobot: pip install 'mujoco-teleop[lerobot]'")
+os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
+
+from replay import load_episode  # noqa: E402
+from replay.export import ExportError, ExportOptions, export_dataset  # noqa: E402
+
+HZ = "15"
+SIZE = "64x64"
+PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
+
+
+def _record(directory, script, *extra: str) -> dict:
+    return run_json("run", "--device", f"script:{script}", "--record", str(directory), "--control-hz", HZ,
+                    "--json", *extra)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """episode_000000/1: successful picks (seeds 0, 1); episode_000002: fails its task."""
+    root = tmp_path_factory.mktemp("episodes")
+    rec = root / "lift"
+    picks = _record(rec, PICK, "--episodes", "2")
+    assert [e["success"] for e in picks["per_episode"]] == [True, True]
+    fail_script = write_script(root / "fail.json", [{"duration": 0.6, "move": [0, 0.05, 0]}])
+    fail = _record(rec, fail_script, "--seed", "7")
+    assert fail["success"] is False
+    files = sorted(rec.glob("*.mcap"))
+    assert len(files) == 3
+    return {"dir": rec, "files": files, "root": root, "fail_script": fail_script}
+
+
+@pytest.fixture(scope="module")
+def exported(recorded, tmp_path_factory):
+    """The whole directory exported with the CLI's defaults (front + wrist, joint actions)."""
+    out = tmp_path_factory.mktemp("datasets") / "lift"
+    result = run_cli("export", str(recorded["dir"]), "--out", str(out), "--repo-id", "test/lift", "--image-size", SIZE)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return {"out": out, "stdout": result.stdout}
+
+
+def _open(out, repo_id="test/lift"):
+    from lerobot.datasets import LeRobotDataset
+
+    return LeRobotDataset(repo_id, root=out)
+
+
+def _column(ds, key: str) -> np.ndarray:
+    return np.asarray(ds.hf_dataset.with_format("numpy")[key])
+
+
+def _episodes(recorded):
+    return [load_episode(f) for f in recorded["files"]]
+
+
+def _same_rotation(a: np.ndarray, b: np.ndarray, atol: float = 2e-6) -> bool:
+    """Quaternion rows equal up to sign (q and -q are one rotation)."""
+    dots = np.abs(np.sum(a * b, axis=-1))
+    return bool(np.all(dots > 1 - atol))
+
+
+def test_export_loads_offline_with_recorded_values(recorded, exported):
+    eps = _episodes(recorded)
+    ds = _open(exported["out"])
+    steps = [e.steps for e in eps]
+    assert ds.num_episodes == 3 and ds.num_frames == sum(steps) == len(ds)
+    assert ds.fps == 15 and ds.meta.robot_type == "panda"
+    assert "exported 3 episodes" in exported["stdout"] and f"{sum(steps)} frames" in exported["stdout"]
+
+    feats = ds.meta.features
+    joints = eps[0].meta["robot_spec"]["arms"][0]["joints"]
+    assert feats["observation.state"]["names"] == [*joints, "gripper"]
+    assert feats["action"]["names"] == [*joints, "gripper"]
+    assert feats["observation.ee_pose"]["names"] == ["x", "y", "z", "qw", "qx", "qy", "qz"]
+    assert feats["observation.images.front"]["dtype"] == "video"
+    assert tuple(feats["observation.images.wrist"]["shape"]) == (64, 64, 3)
+
+    # Episode boundaries, frame order and task text.
+    meta_eps = ds.meta.episodes
+    episode_index, frame_index = _column(ds, "episode_index"), _column(ds, "frame_index")
+    task_index = _column(ds, "task_index")
+    start = 0
+    for i, ep in enumerate(eps):
+        row = meta_eps[i]
+        assert (row["dataset_from_index"], row["dataset_to_index"], row["length"]) == (start, start + ep.steps, ep.steps)
+        assert row["tasks"] == [ep.meta["task"]]
+        assert np.all(episode_index[start:start + ep.steps] == i)
+        assert np.array_equal(frame_index[start:start + ep.steps], np.arange(ep.steps))
+        start += ep.steps
+    assert set(ds.meta.tasks.index) == {"Pick up the red cube and lift it."}
+    assert np.all(task_index == 0)
+    assert ds[0]["task"] == "Pick up the red cube and lift it."
+
+    # Values: actions are the recorded ctrl, states the recorded qpos, EE poses the replayed site pose.
+    action, state, pose = _column(ds, "action"), _column(ds, "observation.state"), _column(ds, "observation.ee_pose")
+    start = 0
+    for ep in eps:
+        rows = slice(start, start + ep.steps)
+        arm = ep.meta["robot_spec"]["arms"][0]
+        model = ep.build_model()
+        act_ids = [model.actuator(a).id for a in arm["actuators"]]
+        qadr = [model.joint(j).qposadr[0] for j in arm["joints"]]
+        grip = model.actuator(arm["gripper_actuator"]).id
+        assert np.array_equal(action[rows, :7], ep.ctrl[:, act_ids].astype(np.float32))
+        assert np.array_equal(action[rows, 7], ep.gripper[:, 0].astype(np.float32))  # 1 open .. 0 closed
+        span = arm["gripper_open"] - arm["gripper_closed"]
+        assert np.array_equal(action[rows, 7], ((ep.ctrl[:, grip] - arm["gripper_closed"]) / span).astype(np.float32))
+        assert np.array_equal(state[rows, :7], ep.qpos[:, qadr].astype(np.float32))
+        assert np.all((state[rows, 7] > -0.05) & (state[rows, 7] < 1.05))
+        # The recorded ee_pose is after step k, i.e. at state k+1.
+        np.testing.assert_allclose(pose[rows][1:, :3], ep.ee_pose[:-1, 0, :3], atol=1e-6)
+        assert _same_rotation(pose[rows][1:, 3:], ep.ee_pose[:-1, 0, 3:])
+        start += ep.steps
+
+
+def test_images_are_rendered_and_change(recorded, exported):
+    ds = _open(exported["out"])
+    steps = load_episode(recorded["files"][0]).steps
+    for key in ("observation.images.front", "observation.images.wrist"):
+        first, last = ds[0][key].numpy(), ds[steps - 1][key].numpy()
+        assert first.shape == (3, 64, 64)
+        for img in (first, last):
+            assert img.std() > 0.05, f"{key} is blank"  # floats in [0, 1]
+        assert np.abs(first - last).mean() > 0.02, f"{key} did not change over the episode"
+
+
+def test_only_success_and_append(recorded, tmp_path):
+    out = tmp_path / "ds"
+    eps = _episodes(recorded)
+    s1 = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
+                                                           image_size=(32, 32), only_success=True, progress=False))
+    assert (s1.episodes, s1.skipped_failed, s1.frames) == (2, 1, eps[0].steps + eps[1].steps)
+    ds = _open(out, "test/append")
+    assert ds.num_episodes == 2
+
+    # Append the failed one under another task text; a plain export into `out` is refused.
+    with pytest.raises(ExportError, match="already exists"):
+        export_dataset([recorded["files"][2]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
+                                                              image_size=(32, 32), progress=False))
+    s2 = export_dataset([recorded["files"][2]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
+                                                               image_size=(32, 32), append=True, task="Wave.", progress=False))
+    assert (s2.episodes, s2.dataset_episodes) == (1, 3)
+    ds = _open(out, "test/append")
+    assert ds.num_episodes == 3 and ds.num_frames == sum(e.steps for e in eps)
+    last = ds.meta.episodes[2]
+    assert last["tasks"] == ["Wave."] and last["dataset_from_index"] == eps[0].steps + eps[1].steps
+    assert ds[ds.num_frames - 1]["task"] == "Wave."
+    action = _column(ds, "action")
+    assert np.array_equal(action[-eps[2].steps:, :7], eps[2].ctrl[:, :7].astype(np.float32))
+    assert ds[ds.num_frames - 1]["observation.images.front"].std() > 0.05
+
+    # Appending episodes that do not fit the dataset's features is refused, naming the difference.
+    with pytest.raises(ExportError, match="does not match"):
+        export_dataset([recorded["files"][2]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
+                                                              image_size=(48, 32), append=True, progress=False))
+    assert _open(out, "test/append").num_episodes == 3
+
+
+def test_ee_actions_and_images_without_video(recorded, tmp_path):
+    ep = load_episode(recorded["files"][0])
+    files = [recorded["files"][0]]
+    ee_pose = export_dataset(files, ExportOptions(out=tmp_path / "pose", repo_id="t/pose", cameras=[],
+                                                  action="ee_pose", progress=False))
+    assert ee_pose.frames == ep.steps
+    ds = _open(tmp_path / "pose", "t/pose")
+    assert ds.meta.features["action"]["names"] == ["x", "y", "z", "qw", "qx", "qy", "qz", "gripper"]
+    assert not any(k.startswith("observation.images") for k in ds.meta.features)
+    act = _column(ds, "action")
+    np.testing.assert_array_equal(act[:, :3], ep.ee_target[:, 0, :3].astype(np.float32))
+    assert _same_rotation(act[:, 3:7], ep.ee_target[:, 0, 3:])
+    np.testing.assert_array_equal(act[:, 7], ep.gripper[:, 0].astype(np.float32))
+
+    export_dataset(files, ExportOptions(out=tmp_path / "delta", repo_id="t/delta", cameras=["wrist"], image_size=(32, 24),
+                                        action="ee_delta", video=False, progress=False))
+    ds = _open(tmp_path / "delta", "t/delta")
+    assert ds.meta.features["observation.images.wrist"]["dtype"] == "image"
+    act, pose = _column(ds, "action"), _column(ds, "observation.ee_pose")
+    # current pose + delta = commanded target
+    np.testing.assert_allclose(pose[:, :3] + act[:, :3], ep.ee_target[:, 0, :3], atol=2e-6)
+    for k in range(0, ep.steps, 7):
+        turned = np.empty(4)
+        mujoco.mju_axisAngle2Quat(turned, act[k, 3:6] / max(np.linalg.norm(act[k, 3:6]), 1e-12), np.linalg.norm(act[k, 3:6]))
+        target = np.empty(4)
+        mujoco.mju_mulQuat(target, turned, pose[k, 3:].astype(float))
+        assert _same_rotation(target, ep.ee_target[k, 0, 3:], atol=1e-5)
+    img = ds[5]["observation.images.wrist"]
+    assert tuple(img.shape) == (3, 24, 32) and img.std() > 0.05
+
+
+def test_bimanual_concatenates_arms_and_names_wrist_cameras(tmp_path):
+    script = write_script(tmp_path / "bi.json", [{"duration": 0.4, "move": [0, 0, 0.03], "arm": 0},
+                                                 {"duration": 0.4, "move": [0, 0, 0.03], "arm": 1}])
+    rec = _record(tmp_path / "bi", script, "--robot", "bimanual", "--scene", "lift")
+    out = tmp_path / "bi_ds"
+    result = run_cli("export", str(tmp_path / "bi"), "--out", str(out), "--repo-id", "t/bi",
+                     "--cameras", "front,wrist", "--image-size", "48x32")
+    assert result.returncode == 0, result.stderr[-2000:]
+    ds = _open(out, "t/bi")
+    ep = load_episode(rec["files"][0])
+    feats = ds.meta.features
+    assert {"observation.images.front", "observation.images.left_wrist", "observation.images.right_wrist"} <= set(feats)
+    arms = ep.meta["robot_spec"]["arms"]
+    assert feats["observation.state"]["names"] == [*arms[0]["joints"], "left/gripper", *arms[1]["joints"], "right/gripper"]
+    assert tuple(feats["observation.ee_pose"]["shape"]) == (14,)
+    model = ep.build_model()
+    ids = [model.actuator(a).id for arm in arms for a in arm["actuators"]]
+    action = _column(ds, "action")
+    n = len(arms[0]["joints"])
+    np.testing.assert_array_equal(action[:, :n], ep.ctrl[:, ids[:n]].astype(np.float32))
+    np.testing.assert_array_equal(action[:, n + 1:2 * n + 1], ep.ctrl[:, ids[n:]].astype(np.float32))
+    for key in ("observation.images.left_wrist", "observation.images.right_wrist"):
+        assert ds[0][key].std() > 0.05
+
+
+# -- bad input -----------------------------------------------------------------
+
+
+def test_existing_out_without_append_is_refused(recorded, exported):
+    result = run_cli("export", str(recorded["dir"]), "--out", str(exported["out"]), "--repo-id", "test/lift")
+    assert_one_line_error(result, str(exported["out"]), "--append")
+
+
+def test_unknown_camera_lists_the_cameras(recorded, tmp_path):
+    result = run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x", "--cameras", "front,side")
+    assert_one_line_error(result, "'side'", "front", "overhead", "wrist")
+    assert not (tmp_path / "x").exists()
+
+
+def test_mixed_scenes_and_rates_are_listed(recorded, tmp_path):
+    other = tmp_path / "other"
+    run_json("run", "--device", f"script:{recorded['fail_script']}", "--record", str(other), "--control-hz", "10", "--json")
+    run_json("run", "--device", f"script:{recorded['fail_script']}", "--record", str(other), "--scene", "stack",
+             "--control-hz", HZ, "--json")
+    result = run_cli("export", str(recorded["dir"]), str(other), "--out", str(tmp_path / "x"), "--repo-id", "t/x")
+    assert_one_line_error(result, "different robots, scenes or rates", "scene lift / 15 Hz", "scene lift / 10 Hz",
+                          "scene stack / 15 Hz", "episode_000000.mcap")
+
+
+def test_bad_flags_and_files(recorded, tmp_path):
+    assert_one_line_error(run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x",
+                                  "--image-size", "224"), "--image-size", "WIDTHxHEIGHT")
+    assert_one_line_error(run_cli("export", str(tmp_path / "nothing"), "--out", str(tmp_path / "x"), "--repo-id", "t/x"),
+                          "no such file")
+    (tmp_path / "plain").mkdir()
+    assert_one_line_error(run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "plain"), "--repo-id", "t/x",
+                                  "--append"), "not a LeRobot dataset")
+    assert_one_line_error(run_cli("export", str(recorded["root"] / "fail.json"), "--out", str(tmp_path / "x"),
+                                  "--repo-id", "t/x"), "fail.json")
+    assert not (tmp_path / "x").exists()
+
+
+def test_without_lerobot_says_which_extra(recorded, tmp_path):
+    code = ("import sys; sys.modules['lerobot'] = None; from teleop.cli import main; "
+            f"sys.exit(main(['export', {str(recorded['dir'])!r}, '--out', {str(tmp_path / 'x')!r}, '--repo-id', 't/x']))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
+    assert_one_line_error(result, "pip install 'mujoco-teleop[lerobot]'")
+
+
+# -- a LeRobot policy trains on the export -----------------------------------------
+
+
+def test_act_policy_trains_on_exported_dataset(exported):
+    import torch
+    from lerobot.datasets import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.policies import make_policy, make_pre_post_processors
+    from lerobot.policies.act.configuration_act import ACTConfig
+
+    torch.manual_seed(0)
+    meta = LeRobotDatasetMetadata("test/lift", root=exported["out"])
+    cfg = ACTConfig(device="cpu", pretrained_backbone_weights=None, push_to_hub=False, dim_model=32, n_heads=2,
+                    dim_feedforward=64, n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=8,
+                    chunk_size=4, n_action_steps=4)
+    ds = LeRobotDataset("test/lift", root=exported["out"], delta_timestamps=resolve_delta_timestamps(cfg, meta))
+    policy = make_policy(cfg, ds_meta=ds.meta)
+    assert set(policy.config.image_features) == {"observation.images.front", "observation.images.wrist"}
+    preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=ds.meta.stats)
+    optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
+    loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=True, num_workers=0)
+    before = [p.detach().clone() for p in policy.parameters()]
+    policy.train()
+    batches = iter(loader)
+    for _ in range(3):
+        loss, _ = policy.forward(preprocessor(next(batches)))
+        assert torch.isfinite(loss)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    changed = sum(not torch.equal(a, b) for a, b in zip(before, policy.parameters()))
+    assert changed > len(before) // 2
+
+
+def test_cli_help_names_every_flag():
+    result = run_cli("export", "--help")
+    assert result.returncode == 0
+    for flag in ("--out", "--repo-id", "--cameras", "--image-size", "--action", "--task", "--only-success",
+                 "--no-video", "--append"):
+        assert flag in result.stdout
+    info = json.dumps(result.stdout)
+    assert "joint" in info and "ee_delta" in info and "ee_pose" in info
+
+
+def test_ctrl_c_keeps_the_saved_episodes(recorded, tmp_path):
+    """A real SIGINT after the first saved episode: finalize still runs and that episode loads."""
+    import signal
+
+    def interrupt(episodes: int, frames: int) -> None:
+        if episodes == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    out = tmp_path / "ds"
+    summary = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="t/int", cameras=["front"],
+                                                               image_size=(32, 32), progress=False, on_episode=interrupt))
+    assert summary.interrupted and summary.episodes == 1
+    assert "interrupted" in summary.line()
+    ds = _open(out, "t/int")
+    assert ds.num_episodes == 1 and ds.num_frames == load_episode(recorded["files"][0]).steps
+    assert ds[ds.num_frames - 1]["observation.images.front"].std() > 0.05
