@@ -1,7 +1,7 @@
 """Recording demonstrations: one episode per file, MCAP (live, Foxglove) and/or HDF5 (robomimic).
 
 The control thread calls `EpisodeWriter.append(StepRecord)` (a row copy and a
-deque push); a writer thread encodes and flushes every 0.1 s. The file layout is
+deque push); a writer thread encodes and flushes every 0.05 s. The file layout is
 documented in `replay.schema`, which readers share. `recover_mcap` and
 `convert_episode` rewrite files for `teleop inspect --recover` / `teleop convert`.
 """

@@ -116,6 +116,7 @@ class McapSink:
     # before a waiting control thread wakes up, which then waits out Python's 5 ms
     # switch interval. Offline conversion sets this to 0.
     yield_s = 50e-6
+    yield_every = 4  # rows
 
     def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], t0_ns: int | None = None):
         self.path = path
@@ -221,7 +222,7 @@ class McapSink:
                      "position": _finite_or_none(pos_l[i]), "velocity": _finite_or_none(vel_l[i])}
                 ).encode()
             w.add_message(self._js_ch, ns, data, ns, k)
-            if i % 4 == 3 and self.yield_s:
+            if self.yield_s and i % self.yield_every == self.yield_every - 1:
                 time.sleep(self.yield_s)  # hand the GIL to the control thread now and then
 
     def flush(self) -> None:

@@ -25,7 +25,7 @@ class StepRecord:
     qpos: np.ndarray  # (nq,) before the step
     qvel: np.ndarray  # (nv,) before the step
     gripper: np.ndarray  # (n_arms,) commanded opening, 1.0 open .. 0.0 closed
-    commands: list[dict] = field(default_factory=list)  # Command.to_dict() of this tick
+    commands: list = field(default_factory=list)  # Command.to_dict() of this tick, or the Commands themselves (converted on the writer thread)
     wall_time: float = 0.0  # time.time() at the step
 
 

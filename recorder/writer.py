@@ -29,7 +29,7 @@ from replay import schema
 
 FORMATS = ("mcap", "hdf5")
 SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
-FLUSH_PERIOD = 0.1
+FLUSH_PERIOD = 0.05  # s; a kill -9 loses about this plus one batch's encoding (0.25 s promised)
 _EPISODE_RE = re.compile(r"^episode_(\d+)\.(mcap|hdf5)$")
 _open_writers: "weakref.WeakSet[EpisodeWriter]" = weakref.WeakSet()
 
@@ -52,6 +52,14 @@ def next_episode_index(directory: Path) -> int:
         return 0
     found = [int(m.group(1)) for p in directory.iterdir() if (m := _EPISODE_RE.match(p.name))]
     return max(found) + 1 if found else 0
+
+
+def _commands_json(commands: list) -> str:
+    """JSON list of a step's commands. Objects with to_dict() (device Commands) are
+    accepted too, so a caller may leave the conversion to this thread."""
+    if not commands:
+        return "[]"
+    return json.dumps([c if isinstance(c, dict) else c.to_dict() for c in commands])
 
 
 def _check_meta(meta: dict) -> None:
@@ -180,7 +188,7 @@ class EpisodeWriter:
             return
         items = [q.popleft() for _ in range(n)]
         rows = np.stack([r for r, _ in items])
-        commands = [json.dumps(c) if c else "[]" for _, c in items]  # encoded once for all sinks
+        commands = [_commands_json(c) for _, c in items]  # encoded once for all sinks
         for sink in self._sinks:
             sink.write(rows, commands)
             sink.flush()
