@@ -133,6 +133,7 @@ class Session:
         self.base_pos = [self.data.xpos[self.model.jnt_bodyid[self.model.joint(a.joints[0]).id]].copy() for a in self.scene.arms]
         self.steps = 0
         self.tracking_errors: list[np.ndarray] = []
+        self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
 
     def _actuator_for_joint(self, joint: str) -> int:
         jid = self.model.joint(joint).id
@@ -279,19 +280,24 @@ class Session:
         mujoco.mj_getState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
         return state
 
-    @property
-    def nstate(self) -> int:
-        return mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
-
     def _record(self, t, state, qpos, qvel, commands):
+        """One StepRecord, built cheaply: this runs on the control thread every tick."""
         from recorder import StepRecord
 
-        ee_target = np.array([np.concatenate([a.target_pos, a.target_quat]) for a in self.arms])
-        ee_pose = np.array([np.concatenate(self.ee_pose(i)) for i in range(len(self.arms))])
+        n = len(self.arms)
+        ee_target = np.empty((n, 7))
+        ee_pose = np.empty((n, 7))
+        gripper = np.empty(n)
+        for i, a in enumerate(self.arms):
+            ee_target[i, :3] = a.target_pos
+            ee_target[i, 3:] = a.target_quat
+            ee_pose[i, :3] = self.data.site_xpos[a.site_id]
+            mujoco.mju_mat2Quat(ee_pose[i, 3:], self.data.site_xmat[a.site_id])
+            gripper[i] = 1.0 if a.gripper_open else 0.0
+        # Command objects go as they are: the writer thread turns them into dicts.
         return StepRecord(
             time=float(t), state=state, ctrl=self.data.ctrl.copy(), ee_target=ee_target, ee_pose=ee_pose,
-            qpos=qpos, qvel=qvel, gripper=np.array([1.0 if a.gripper_open else 0.0 for a in self.arms]),
-            commands=[c.to_dict() for c in commands if not c.is_idle()], wall_time=time.time(),
+            qpos=qpos, qvel=qvel, gripper=gripper, commands=list(commands), wall_time=time.time(),
         )
 
     # --- recording -----------------------------------------------------------
