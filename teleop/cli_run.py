@@ -107,6 +107,7 @@ def open_session_devices(spec: str, args: argparse.Namespace, n_arms: int, log=p
 
 def cmd_run(args: argparse.Namespace) -> int:
     from devices.base import DeviceError
+    from recorder import RecorderError
 
     if args.episodes < 1:
         raise UsageError("--episodes must be at least 1")
@@ -168,6 +169,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     except DeviceError as exc:
         session.close()
         raise UsageError(str(exc)) from None
+    except RecorderError as exc:
+        raise UsageError(f"recording failed: {exc}") from None
     finally:
         for d in devices:
             d.close()
