@@ -68,6 +68,9 @@ def export_rate(paths: list[Path], out: Path) -> float:
 
 
 def measure(quick: bool) -> dict[str, float]:
+    from teleop.cli_export import quiet_environment
+
+    quiet_environment()  # no encoder banners or dataset progress bars in the figures' output
     from replay.export import _lerobot
     from replay.render import DEFAULTS, TUNED
 

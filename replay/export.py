@@ -23,12 +23,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from replay.engine import replay_states
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, robot_layout
-from replay.render import FastRenderer, RenderError
+from replay.render import FastRenderer, RenderError, warm_up
 
 LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
 DEFAULT_CAMERAS = ("front", "wrist")
@@ -274,6 +273,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         raise ExportError(f"--out {opts.out} already exists (add --append to add episodes to it, or choose a new directory)")
     if opts.append and opts.out.exists() and not (opts.out / "meta" / "info.json").is_file():
         raise ExportError(f"--append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
+    warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
     entries = _scan(paths)
     summary = ExportSummary(out=opts.out)
     chosen = []

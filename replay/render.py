@@ -87,20 +87,40 @@ def _finite_planes(m: mujoco.MjModel) -> None:
         m.geom_size[g, 2] = max(float(m.geom_size[g, 2]), half / 15.0)  # ~30x30 quads
 
 
-def _probe(backend: str) -> bool:
-    """Whether `backend` can make a context here (in a child: a failed GL import poisons the process)."""
-    code = (
-        f"from mujoco.{backend} import GLContext; c = GLContext(8, 8); c.make_current(); c.free()"
-        if backend != "glfw"
-        else "import glfw, sys; sys.exit(0 if glfw.init() else 1)"
-    )
+_probes: dict[str, subprocess.Popen] = {}
+
+
+def _start_probe(backend: str) -> None:
+    """Check in a child whether `backend` makes a context (a failed GL import poisons a process)."""
+    if backend in _probes:
+        return
+    code = f"from mujoco.{backend} import GLContext; c = GLContext(8, 8); c.make_current(); c.free()"
     env = {**os.environ, "MUJOCO_GL": backend}
     env.pop("PYOPENGL_PLATFORM", None)
     try:
-        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
+        _probes[backend] = subprocess.Popen(
+            [sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+    except OSError:
+        pass
+
+
+def _probe(backend: str) -> bool:
+    _start_probe(backend)
+    proc = _probes.get(backend)
+    if proc is None:
         return False
-    return done.returncode == 0
+    try:
+        return proc.wait(timeout=60) == 0
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return False
+
+
+def warm_up() -> None:
+    """Start choosing the GL backend now, in the background (it takes a Python start-up)."""
+    if _chosen_backend is None and not os.environ.get("MUJOCO_GL", "").strip():
+        _start_probe("egl")
 
 
 def gl_backend() -> str:
@@ -111,7 +131,7 @@ def gl_backend() -> str:
     wanted = os.environ.get("MUJOCO_GL", "").strip().lower()
     if wanted:
         if wanted not in BACKENDS:
-            raise RenderError(f"MUJOCO_GL={wanted!r} cannot render offscreen here (use egl or osmesa)")
+            raise RenderError(f"MUJOCO_GL={wanted!r} cannot render offscreen here (use one of: {', '.join(BACKENDS)})")
         _chosen_backend = wanted
         return wanted
     for backend in ("egl", "osmesa"):
