@@ -32,6 +32,7 @@ CAMERA_POSITION = (1.45, -1.05, 0.95)
 CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 CAMERA_FOV = np.radians(50.0)  # vertical
 POSE_EPS = 1e-5
+MOVE_EPS = 2e-5  # m (and rotation-matrix entries): below this nothing visibly moved
 
 
 def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
@@ -48,6 +49,8 @@ class SceneDrawer:
         self.period = 1.0 / max_hz
         self.update_s: collections.deque[float] = collections.deque(maxlen=600)
         self.updates = 0
+        self.skipped = 0  # ticks with nothing visible moving: not sent
+        self._sent: np.ndarray | None = None
         self.latency_ms: float | None = None
         self._last_input = 0.0
         self._last_tick = -1
@@ -137,18 +140,30 @@ class SceneDrawer:
                 data.mocap_pos[:] = snap.mocap_pos
                 data.mocap_quat[:] = snap.mocap_quat
             mujoco.mj_kinematics(self.model, data)
+            self._last_tick = snap.tick
+            self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target
+            if not self._moved(snap):
+                self.skipped += 1
+                return 0.0
             with self.server.atomic():
                 self._draw_markers(snap)
-                self._sync_gizmos(snap)
                 self.scene.update_from_mjdata(data)  # ends with a flush: one window per update
             cost = time.perf_counter() - start
             self.update_s.append(cost)
             self.updates += 1
-            self._last_tick = snap.tick
             if snap.input_time > self._last_input:
                 self._last_input = snap.input_time
                 self.latency_ms = (time.monotonic() - snap.input_time) * 1000.0
             return cost
+
+    def _moved(self, snap: Snapshot) -> bool:
+        """Whether anything visible moved since the last update sent (a browser redraws on every update)."""
+        poses = np.concatenate([self.data.xpos.ravel(), self.data.xmat.ravel(),
+                                *(np.concatenate(t) for t in snap.targets), *(np.concatenate(e) for e in snap.ee)])
+        if self._sent is not None and self._sent.shape == poses.shape and np.max(np.abs(poses - self._sent)) < MOVE_EPS:
+            return False
+        self._sent = poses
+        return True
 
     def _draw_markers(self, snap: Snapshot) -> None:
         targets = np.array([np.concatenate(t) for t in snap.targets])
@@ -176,6 +191,7 @@ class SceneDrawer:
         self.scene.mj_data = mujoco.MjData(self.model)
         self.scene.rebuild_visual_handles()
         self._generation = snap.generation
+        self._sent = None
 
     # -- figures ---------------------------------------------------------
     def update_ms(self) -> float:

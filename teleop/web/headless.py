@@ -92,7 +92,7 @@ def dismiss_toasts(page) -> None:
     """Close viser's notifications (headless Chromium gets a 'software WebGL' one)."""
     for button in page.locator(".mantine-Notification-closeButton").all():
         try:
-            button.click(timeout=1000)
+            button.dispatch_event("click", timeout=2000)
         except Exception:  # noqa: BLE001 - already gone
             pass
 
@@ -121,9 +121,16 @@ def project(point, box: dict, position, look_at, fov_y: float, up=(0.0, 0.0, 1.0
     return box["x"] + (ndc_x + 1.0) / 2.0 * box["width"], box["y"] + (1.0 - ndc_y) / 2.0 * box["height"]
 
 
-def click_button(page, label: str, timeout_s: float = 10.0) -> None:
-    """Click the panel button whose text is exactly `label`."""
-    page.get_by_role("button", name=label, exact=True).first.click(timeout=timeout_s * 1000)
+def click_button(page, label: str, timeout_s: float = 15.0) -> None:
+    """Click the panel button whose text is exactly `label`.
+
+    The click is dispatched to the button itself: with software WebGL a page
+    may draw only a few frames a second, and a mouse click would first wait
+    for the layout to be "stable" over two frames.
+    """
+    button = page.get_by_role("button", name=label, exact=True).first
+    button.wait_for(state="visible", timeout=timeout_s * 1000)
+    button.dispatch_event("click", timeout=timeout_s * 1000)
 
 
 def free_port() -> int:
@@ -193,7 +200,7 @@ class ServeProcess:
         return self.proc.returncode
 
 
-def drag_gizmo_axis(page, target_pos, target_quat, axis: int = 0, pixels: float = 80.0, steps: int = 20,
+def drag_gizmo_axis(page, target_pos, target_quat, axis: int = 0, pixels: float = 80.0, steps: int = 8,
                     step_s: float = 0.03) -> None:
     """Grab the gizmo's `axis` arrow (in the target's frame) and drag it `pixels` along its screen direction."""
     import mujoco
