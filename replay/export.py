@@ -116,6 +116,7 @@ class _Entry:
     signature: tuple  # (robot, scene, control_hz): must agree across an export
     layout: tuple  # arms' joints/actuators: a same-named robot must also agree here
     success: bool
+    complete: bool
     steps: int
     cameras: list[str]
 
@@ -141,6 +142,7 @@ def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
                 signature=(m.get("robot"), m.get("scene"), float(m.get("control_hz") or 0)),
                 layout=tuple((tuple(a.get("joints", ())), tuple(a.get("actuators") or ())) for a in arms),
                 success=bool(m.get("success")),
+                complete=bool(m.get("complete", True)) and not ep.truncated,
                 steps=ep.steps,
                 cameras=list(m.get("cameras") or []),
             )
@@ -236,16 +238,16 @@ def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, rob
             raise ExportError(f"--out {out} already exists (add --append to add episodes to it, or choose a new directory)")
         if not (out / "meta" / "info.json").is_file():
             raise ExportError(f"--append: {out} is not a LeRobot dataset (no meta/info.json)")
-        try:
+        from lerobot.datasets import LeRobotDatasetMetadata
+
+        try:  # read-only first: a dataset that does not fit is never opened for writing
+            _check_appendable(LeRobotDatasetMetadata(opts.repo_id, root=out), spec, fps, robot_type, out)
             ds = LeRobotDataset.resume(opts.repo_id, root=out, image_writer_threads=0 if opts.video else 2, **common)
+        except ExportError:
+            raise
         except Exception as exc:  # noqa: BLE001 - LeRobot raises many kinds for a broken dataset
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise ExportError(f"--append: cannot open {out} as a LeRobot dataset: {first}") from None
-        try:
-            _check_appendable(ds.meta, spec, fps, robot_type, out)
-        except ExportError:
-            ds.finalize()
-            raise
         return ds, False
     ds = LeRobotDataset.create(
         opts.repo_id, fps, spec, root=out, robot_type=robot_type, use_videos=opts.video,
@@ -288,6 +290,9 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         why = f" ({summary.skipped_failed} did not succeed)" if summary.skipped_failed else ""
         raise ExportError(f"no episodes to export among {len(entries)} found{why}")
     _check_consistent(chosen)
+    cut = [e.path for e in chosen if not e.complete]
+    if cut:
+        log(f"note: {len(cut)} episode(s) were cut short when recorded ({_names(cut)}); exporting the steps they have")
     robot_type, _, hz = chosen[0].signature
     fps = summary.fps = _fps(hz)
     cameras = summary.cameras = _resolve_cameras(opts.cameras, chosen[0].cameras)
@@ -338,7 +343,10 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
     bar = tqdm(total=total, unit="frame", desc="export", disable=not opts.progress, file=sys.stderr, dynamic_ncols=True)
     try:
         for i, entry in enumerate(chosen):
-            ep = first if i == 0 else load_episode(entry.path)
+            try:
+                ep = first if i == 0 else load_episode(entry.path)
+            except EpisodeError as exc:  # changed on disk since the scan
+                raise ExportError(str(exc)) from None
             first = None  # let the first episode's arrays go
             model = ep.build_model()
             if renderer is not None and i > 0:

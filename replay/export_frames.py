@@ -9,6 +9,11 @@ Gripper values are normalized to 1 = open .. 0 = closed, in both the state
 (the gripper actuator's measured length) and the action (its ctrl target), so
 that one policy output fits any gripper's ctrl range; the raw range is stored
 per robot in the recording's robot_spec.
+
+Poses are position (m, world frame) + quaternion wxyz. q and -q are one
+rotation; each arm's quaternions are kept on one hemisphere along an episode
+(and commanded ones on the observed one's) so values never flip sign between
+frames, which a policy would have to learn around.
 """
 
 from __future__ import annotations
