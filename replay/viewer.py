@@ -186,7 +186,8 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -
             server.stop()
             raise ServeError(f"port {port} is already in use on {host}; pass --port N")
         try:
-            server.gui.configure_theme(control_layout="fixed", show_logo=False, show_share_button=False)
+            server.gui.configure_theme(show_logo=False, show_share_button=False)
+            server.gui.main_panel.dock_right()
             viewer = EpisodeViewer(server, episode)
         except BaseException:
             server.stop()

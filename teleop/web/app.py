@@ -70,7 +70,8 @@ class WebApp:
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
-        self.server.gui.configure_theme(control_layout="fixed", control_width="large", show_logo=False, show_share_button=False)
+        self.server.gui.configure_theme(control_width="large", show_logo=False, show_share_button=False)
+        self.server.gui.main_panel.dock_right()
 
         self.gizmo = next((d for d in self.devices if d.kind == "gizmo"), None)
         self.panel_device = PanelDevice()

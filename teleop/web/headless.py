@@ -184,7 +184,8 @@ class ServeProcess:
         raise TimeoutError(f"timed out waiting for {what}; last status: {json.dumps(status)[:1500]}")
 
     def log(self) -> str:
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_file.read_text()
 
     def stop(self, sig: int = signal.SIGINT, timeout_s: float = 30.0) -> int:
@@ -196,7 +197,8 @@ class ServeProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        self._log.close()
+        if not self._log.closed:
+            self._log.close()
         return self.proc.returncode
 
 

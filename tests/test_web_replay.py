@@ -1,0 +1,93 @@
+"""`teleop replay PATH --serve`: the recorded episode in the browser, with a timeline, play/pause and speed."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from teleop.web import headless
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = {"steps": [
+    {"duration": 0.8, "to_body": "cube", "offset": [0, 0, 0.1], "gripper": "open"},
+    {"duration": 0.6, "move": [0, 0, -0.1]},
+    {"duration": 0.4, "gripper": "close"},
+    {"duration": 0.8, "move": [0, 0, 0.15]},
+    {"duration": 8.0, "move": [-0.1, 0.1, 0]},
+]}
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory) -> Path:
+    work = tmp_path_factory.mktemp("replay")
+    script = work / "lift.json"
+    script.write_text(json.dumps(SCRIPT))
+    subprocess.run([sys.executable, "-m", "teleop", "run", "--device", f"script:{script}", "--record", str(work / "eps"),
+                    "--json"], cwd=REPO, check=True, capture_output=True, timeout=120)
+    (path,) = sorted((work / "eps").glob("*.mcap"))
+    return path
+
+
+def test_replay_serve_port_in_use(episode):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
+                                cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and f"port {port}" in result.stderr
+
+
+@pytest.mark.skipif(headless.chromium_path() is None, reason="no Chromium (apt-get install chromium)")
+def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    port = headless.free_port()
+    log = open(tmp_path / "replay.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
+                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "open http" not in (tmp_path / "replay.log").read_text():
+            assert proc.poll() is None, (tmp_path / "replay.log").read_text()
+            time.sleep(0.2)
+        with playwright_api.sync_playwright() as p:
+            browser = headless.launch(p)
+            page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(1100, 720))
+
+            def shown_time() -> float:
+                text = page.get_by_text(re.compile(r"^t = ")).first.text_content()
+                return float(text.split()[2])
+
+            page.get_by_text(episode.name).first.wait_for(timeout=20000)
+            assert page.get_by_text("Step").count() >= 1
+            assert shown_time() == 0.0
+            headless.click_button(page, "Play")
+            page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=10000)
+            time.sleep(1.0)
+            assert shown_time() > 0.2  # playing moves the timeline
+            headless.click_button(page, "Pause")
+            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=10000)
+            time.sleep(1.0)
+            paused = shown_time()
+            time.sleep(1.0)
+            assert shown_time() == paused
+            # scrub: type a step into the slider's number box
+            box = page.locator("input.mantine-NumberInput-input:visible").first
+            box.fill("10")
+            box.press("Enter")
+            page.wait_for_function("() => [...document.querySelectorAll('*')].some(e => e.textContent.trim().startsWith('t = 0.33'))",
+                                   timeout=10000)
+            browser.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(20)
+        log.close()
+    assert code == 0, (tmp_path / "replay.log").read_text()
