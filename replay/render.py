@@ -15,6 +15,7 @@ import copy
 import os
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 
 import mujoco
@@ -88,6 +89,7 @@ def _finite_planes(m: mujoco.MjModel) -> None:
 
 
 _probes: dict[str, subprocess.Popen] = {}
+_current = threading.local()  # the FastRenderer whose GL context is current in this thread
 
 
 def _start_probe(backend: str) -> None:
@@ -205,6 +207,7 @@ class FastRenderer:
         self.camera_ids = camera_ids
         self.model = tune_model(model, self.width, self.height, self.settings)
         self._ctx.make_current()
+        _current.renderer = self
         if self._con is not None:
             self._con.free()
         self._con = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
@@ -219,6 +222,9 @@ class FastRenderer:
         `data` must be forward-computed (mj_forward, or at least kinematics and
         mj_camlight: camera and light poses live in MjData).
         """
+        if getattr(_current, "renderer", None) is not self:  # another renderer's context may be current
+            self._ctx.make_current()
+            _current.renderer = self
         index = self.cameras.index(camera) if isinstance(camera, str) else camera
         self._camera.fixedcamid = self.camera_ids[index]
         mujoco.mjv_updateScene(
@@ -233,8 +239,11 @@ class FastRenderer:
         return [self.render(data, i) for i in range(len(self.camera_ids))]
 
     def close(self) -> None:
+        if getattr(_current, "renderer", None) is self:
+            _current.renderer = None
         con, self._con = getattr(self, "_con", None), None
         if con is not None:
+            self._ctx.make_current()  # free this context's GL objects, not another's
             con.free()
         ctx, self._ctx = getattr(self, "_ctx", None), None
         if ctx is not None:

@@ -1,0 +1,68 @@
+"""The export's offscreen renderer: real MuJoCo rendering of a real recording (no LeRobot needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from replay import load_episode, replay_states
+from replay.export_frames import feature_key
+from replay.render import DEFAULTS, FastRenderer, RenderError, tune_model
+from tests.conftest import ROOT, run_json
+
+PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory):
+    rec = tmp_path_factory.mktemp("render")
+    summary = run_json("run", "--device", f"script:{PICK}", "--record", str(rec), "--control-hz", "10", "--json")
+    return load_episode(summary["files"][0])
+
+
+def test_tuning_works_on_a_copy(episode):
+    model = episode.build_model()
+    before = (model.vis.quality.shadowsize, model.vis.quality.offsamples, model.vis.global_.offwidth,
+              model.light_castshadow.copy(), model.geom_size.copy(), model.mat_reflectance.copy())
+    tuned = tune_model(model, 96, 64)
+    assert (tuned.vis.quality.shadowsize, tuned.vis.quality.offsamples) == (0, 0)
+    assert (tuned.vis.global_.offwidth, tuned.vis.global_.offheight) == (96, 64)
+    assert not tuned.light_castshadow.any() and not tuned.mat_reflectance.any()
+    floor = model.geom("floor").id
+    assert model.geom_size[floor, 0] == 0 and tuned.geom_size[floor, 0] > 5  # infinite floor made finite
+    after = (model.vis.quality.shadowsize, model.vis.quality.offsamples, model.vis.global_.offwidth,
+             model.light_castshadow, model.geom_size, model.mat_reflectance)
+    assert before[:3] == after[:3]
+    for a, b in zip(before[3:], after[3:]):
+        assert np.array_equal(a, b)
+
+
+def test_tuned_images_frame_the_scene_and_match_mujocos_look(episode):
+    model = episode.build_model()
+    cams = ["front", "overhead", "wrist"]
+    with FastRenderer(model, 96, 72, cams) as fast, FastRenderer(model, 96, 72, cams, settings=DEFAULTS) as slow:
+        frames = {}
+        for k, data in replay_states(episode, model):
+            if k in (0, episode.steps - 1):
+                frames[k] = (fast.render_all(data), slow.render_all(data))
+        for k, (tuned, default) in frames.items():
+            for name, a, b in zip(cams, tuned, default):
+                assert a.shape == (72, 96, 3) and a.dtype == np.uint8
+                assert a.std() > 10, f"{name} at step {k} is blank"
+                # Same scene, same framing: only shadows, anti-aliasing and floor shading differ.
+                diff = np.abs(a.astype(int) - b.astype(int)).mean()
+                assert diff < 25, f"{name} at step {k} differs from MuJoCo's default look by {diff:.1f}"
+        for i, name in enumerate(cams):
+            moved = np.abs(frames[0][0][i].astype(int) - frames[episode.steps - 1][0][i].astype(int)).mean()
+            assert moved > 1, f"{name} shows no motion over the episode"
+
+
+def test_unknown_camera_names_the_cameras(episode):
+    with pytest.raises(RenderError, match=r"no camera 'side' .*cameras: front, overhead, wrist"):
+        FastRenderer(episode.build_model(), 32, 32, ["front", "side"])
+
+
+def test_camera_feature_keys_are_valid_names():
+    assert feature_key("front") == "observation.images.front"
+    assert feature_key("left/wrist") == "observation.images.left_wrist"
+    assert feature_key("right/wrist cam") == "observation.images.right_wrist_cam"
