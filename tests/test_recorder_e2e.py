@@ -12,7 +12,6 @@ from tests.conftest import ROOT, run_json
 PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
 
-@pytest.mark.skipif(not PICK.exists(), reason="the scripted pick is not in this checkout")
 def test_recorded_pick_replays_bit_exact_in_fresh_processes(tmp_path: Path):
     out = run_json("run", "--device", f"script:{PICK}", "--scene", "lift", "--robot", "panda", "--seed", "4",
                    "--episodes", "2", "--record", str(tmp_path), "--format", "both", "--json")
@@ -29,7 +28,6 @@ def test_recorded_pick_replays_bit_exact_in_fresh_processes(tmp_path: Path):
         assert verdict["steps"] == info["steps"] and verdict["warnings"] == []
 
 
-@pytest.mark.skipif(not PICK.exists(), reason="the scripted pick is not in this checkout")
 def test_failed_episode_is_kept_and_marked(tmp_path: Path):
     run_json("run", "--device", f"script:{PICK}", "--scene", "lift", "--seconds", "0.5",
              "--record", str(tmp_path), "--format", "mcap", "--json")
