@@ -65,6 +65,11 @@ class WebApp:
         self._closed = False
         self.url = page_url(host, port)
 
+        if session.record is not None:
+            # Imported here, not on the first click on Record: importing (h5py, mcap) takes a
+            # quarter of a second, which the control loop would otherwise spend stalled.
+            import recorder  # noqa: F401
+            import replay  # noqa: F401
         check_port_free(host, port)
         self.server = viser.ViserServer(host=host, port=port, label="teleop", verbose=False)
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
@@ -92,11 +97,13 @@ class WebApp:
 
     # -- life cycle ------------------------------------------------------
     def start(self) -> None:
+        if self.camera is not None:
+            # The GL context and model upload hold the GIL for ~0.1 s: do it before the loop runs.
+            self.camera.start()
+            self.camera.ready.wait(10.0)
         self.sim.start()
         self.drawer.start()
         self.panel.start()
-        if self.camera is not None:
-            self.camera.start()
 
     def close(self) -> list[Path]:
         """Stop everything; an episode in progress is saved, marked incomplete. Returns its files."""
@@ -210,6 +217,7 @@ class WebApp:
         return {
             "url": self.url,
             "pid": os.getpid(),
+            "wall_time": time.time(),
             "scene": session.scene_name,
             "robot": session.robot.name,
             "seed": snap.seed,
@@ -221,6 +229,7 @@ class WebApp:
             "headroom_x": round(self.sim.headroom(), 1),
             "realtime_factor": round(self.sim.realtime_factor(), 4),
             "slips": self.sim.slips,
+            "max_late_ms": round(self.sim.max_late_s * 1000.0, 1),
             "recording": snap.recording,
             "episode_steps": snap.episode_steps,
             "episodes_saved": snap.episodes_saved,

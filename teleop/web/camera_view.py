@@ -73,6 +73,7 @@ class CameraFeed:
         self.period = 1.0 / hz
         self.frames = 0
         self.problem: str | None = None
+        self.ready = threading.Event()  # set once the renderer exists (or failed)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="teleop-camera", daemon=True)
 
@@ -94,32 +95,43 @@ class CameraFeed:
         model.vis.global_.offheight = max(self.size[1], 1)
         return model, mujoco.MjData(model)
 
+    def _open(self, snap):
+        """Model copy, MjData and renderer for `snap`'s model; None (after `fail`) if GL is not there."""
+        import mujoco
+
+        model, data = self._model_for(snap.model)
+        try:
+            renderer = mujoco.Renderer(model, self.size[1], self.size[0])
+        except Exception as exc:  # noqa: BLE001 - any GL failure means "no pictures", not a crash
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            backend = os.environ.get("MUJOCO_GL", "default")
+            self.problem = f"camera images are off: no OpenGL context (MUJOCO_GL={backend}: {reason}); {gl_help()}"
+            self.fail(self.problem)
+            return None
+        return model, data, renderer
+
     def _run(self) -> None:
         import mujoco
 
-        renderer = None
-        generation = None
-        model = data = None
+        snap = self.get_snapshot()
+        opened = self._open(snap)
+        self.ready.set()
+        if opened is None:
+            return
+        model, data, renderer = opened
+        generation = snap.generation
         try:
             while not self._stop.is_set():
                 started = time.perf_counter()
                 snap = self.get_snapshot()
                 if self.wanted():
-                    if snap.generation != generation:
-                        if renderer is not None:
-                            renderer.close()
-                            renderer = None
-                        model, data = self._model_for(snap.model)
-                        generation = snap.generation
-                    if renderer is None:
-                        try:
-                            renderer = mujoco.Renderer(model, self.size[1], self.size[0])
-                        except Exception as exc:  # noqa: BLE001 - any GL failure means "no pictures", not a crash
-                            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-                            backend = os.environ.get("MUJOCO_GL", "default")
-                            self.problem = f"camera images are off: no OpenGL context (MUJOCO_GL={backend}: {reason}); {gl_help()}"
-                            self.fail(self.problem)
+                    if snap.generation != generation:  # a reset compiled a new model
+                        renderer.close()
+                        opened = self._open(snap)
+                        if opened is None:
                             return
+                        model, data, renderer = opened
+                        generation = snap.generation
                     data.qpos[:] = snap.qpos
                     if model.nmocap:
                         data.mocap_pos[:] = snap.mocap_pos
@@ -127,17 +139,15 @@ class CameraFeed:
                     mujoco.mj_kinematics(model, data)
                     mujoco.mj_comPos(model, data)
                     mujoco.mj_camlight(model, data)
-                    name = self.camera()
                     try:
-                        renderer.update_scene(data, camera=name)
+                        renderer.update_scene(data, camera=self.camera())
                     except (KeyError, ValueError):
                         renderer.update_scene(data)
                     self.show(renderer.render().copy())
                     self.frames += 1
                 self._stop.wait(max(0.0, self.period - (time.perf_counter() - started)))
         finally:
-            if renderer is not None:
-                try:
-                    renderer.close()
-                except Exception:  # noqa: BLE001 - closing a context at exit
-                    pass
+            try:
+                renderer.close()
+            except Exception:  # noqa: BLE001 - closing a context at exit
+                pass

@@ -1,0 +1,141 @@
+"""Browser session speed: what a scene update costs, what a browser receives, whether the loop keeps real time.
+
+Figures (`measure`):
+  web_update_ms          server-side cost of one scene update (copy qpos, mj_kinematics on the
+                         drawing MjData, markers, mjviser's batched poses, flush), median, with the
+                         arm moving so that every update is sent (lift, Panda)
+  web_updates_per_s      websocket messages per second received by one headless Chromium (counted
+                         inside viser's worker) while the arm moves; `teleop serve --control-hz 60`,
+                         so the drawer's 60 Hz cap, not the control rate, is the limit
+  serve_realtime_factor  simulated / wall time of `teleop serve` (default 30 Hz) while recording an
+                         episode and streaming to one browser; 1.0 is real time
+  serve_headroom_x       control period / median compute time of one tick in that same run: how
+                         many times faster than real time the loop could run
+
+The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
+Moving the arm without a person: the session also runs a script device that sweeps the target.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _sweep_script(path: Path, seconds: float) -> Path:
+    steps = []
+    for i in range(int(seconds // 2) + 1):
+        sign = 1 if i % 2 == 0 else -1
+        steps.append({"duration": 1.0, "move": [0.08 * sign, 0.0, 0.0]})
+        steps.append({"duration": 1.0, "move": [0.0, 0.08 * sign, -0.04 * sign]})
+    path.write_text(json.dumps({"steps": steps}))
+    return path
+
+
+def update_cost_ms(updates: int) -> float:
+    """Median server-side cost of one scene update, in process, arm moving every tick."""
+    import viser
+
+    from teleop.command import Command
+    from teleop.session import Session
+    from teleop.web.drawing import SceneDrawer
+    from teleop.web.sim_thread import SimThread
+
+    class Sweep:
+        name = kind = "sweep"
+
+        def __init__(self) -> None:
+            self.t = 0.0
+
+        def poll(self, view, dt):
+            self.t += dt
+            return [Command(translation=np.array([0.002 * np.cos(self.t * 3), 0.002 * np.sin(self.t * 3), 0.0]))]
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    try:
+        sim = SimThread(Session(), [Sweep()], log=lambda m: None)
+        drawer = SceneDrawer(server, sim)
+        costs = []
+        for _ in range(updates + 20):
+            cost = drawer.draw(sim.step_once())
+            if cost > 0:
+                costs.append(cost)
+        return float(np.median(costs[20:])) * 1000.0
+    finally:
+        server.stop()
+
+
+def _rate(first: dict, last: dict) -> float:
+    wall = last["wall_time"] - first["wall_time"]
+    return (last["tick"] - first["tick"]) / last["control_hz"] / wall if wall > 0 else 0.0
+
+
+def browser_figures(quick: bool) -> dict[str, float]:
+    from playwright.sync_api import sync_playwright
+
+    from teleop.web import headless
+
+    window = 4.0 if quick else 10.0
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="teleop-bench-web-") as tmp:
+        work = Path(tmp)
+        script = _sweep_script(work / "sweep.json", 3 * window + 30)
+        with sync_playwright() as p:
+            browser = headless.launch(p)
+            try:
+                # 1. updates a browser receives, drawer-limited (control at 60 Hz)
+                server = headless.ServeProcess(["--device", f"gizmo,script:{script}", "--control-hz", "60"], work)
+                try:
+                    page = headless.open_page(browser, server.url, count_frames=True)
+                    server.wait_for(lambda s: s["clients"] >= 1, what="the page")
+                    time.sleep(2.0)
+                    start = headless.frames_received(page)
+                    t0 = time.monotonic()
+                    time.sleep(window)
+                    out["web_updates_per_s"] = round((headless.frames_received(page) - start) / (time.monotonic() - t0), 1)
+                    page.close()
+                finally:
+                    server.stop()
+                # 2. real time while recording and streaming (default control rate)
+                server = headless.ServeProcess(["--device", f"gizmo,script:{script}", "--record", str(work / "eps")], work)
+                try:
+                    page = headless.open_page(browser, server.url)
+                    headless.click_button(page, "Record")
+                    server.wait_for(lambda s: s["recording"], what="recording")
+                    time.sleep(1.0)
+                    first = server.status()
+                    time.sleep(window)
+                    last = server.status()
+                    assert last["recording"] and last["clients"] >= 1, "the run was not recording and streaming"
+                    out["serve_realtime_factor"] = round(_rate(first, last), 4)
+                    out["serve_headroom_x"] = round(float(last["headroom_x"]), 1)
+                    out["serve_tick_ms"] = round(float(last["tick_ms"]), 3)
+                    page.close()
+                finally:
+                    server.stop(signal.SIGINT)
+            finally:
+                browser.close()
+    return out
+
+
+def measure(quick: bool) -> dict[str, float]:
+    figures = {"web_update_ms": round(update_cost_ms(100 if quick else 400), 3)}
+    try:
+        figures.update(browser_figures(quick))
+    except (ImportError, FileNotFoundError) as exc:
+        print(f"bench web: browser figures skipped ({exc})", file=sys.stderr)
+    return figures
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure("--quick" in sys.argv)))
