@@ -97,21 +97,21 @@ class Panel:
             title = "Gripper" if app.session.n_arms == 1 else f"Gripper (arm {arm})"
             with gui.add_folder(title):
                 self.gripper_buttons.append((gui.add_button("Open"), gui.add_button("Close")))
-        with gui.add_folder("Speed (keyboard, SpaceMouse)"):
-            self.pos_slider = gui.add_slider("Position (m/s)", min=POS_SPEED_RANGE[0], max=POS_SPEED_RANGE[1],
-                                             step=0.01, initial_value=float(np.clip(pos_speed, *POS_SPEED_RANGE)))
-            self.rot_slider = gui.add_slider("Rotation (rad/s)", min=ROT_SPEED_RANGE[0], max=ROT_SPEED_RANGE[1],
-                                             step=0.05, initial_value=float(np.clip(rot_speed, *ROT_SPEED_RANGE)))
+        with gui.add_folder("Loop"):
+            self.loop_md = gui.add_markdown(self._loop_text(snap))
         with gui.add_folder("Camera"):
             self.camera_dropdown = gui.add_dropdown("Camera", options=cameras or ("none",),
                                                     initial_value=cameras[0] if cameras else "none")
             w, h = app.camera_size
             self.camera_image = gui.add_image(np.zeros((h, w, 3), dtype=np.uint8), format="jpeg", jpeg_quality=80)
             self.camera_md = gui.add_markdown("")
+        with gui.add_folder("Speed (keyboard, SpaceMouse)"):
+            self.pos_slider = gui.add_slider("Position (m/s)", min=POS_SPEED_RANGE[0], max=POS_SPEED_RANGE[1],
+                                             step=0.01, initial_value=float(np.clip(pos_speed, *POS_SPEED_RANGE)))
+            self.rot_slider = gui.add_slider("Rotation (rad/s)", min=ROT_SPEED_RANGE[0], max=ROT_SPEED_RANGE[1],
+                                             step=0.05, initial_value=float(np.clip(rot_speed, *ROT_SPEED_RANGE)))
         with gui.add_folder("Devices"):
             self.devices_md = gui.add_markdown(self._devices_text())
-        with gui.add_folder("Loop"):
-            self.loop_md = gui.add_markdown(self._loop_text(snap))
         self.notes_md = gui.add_markdown("")
         self._wire()
 
