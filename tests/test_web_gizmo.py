@@ -113,3 +113,40 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
     assert status["loop_hz"] > 25
     assert status["ee_pos"][0][0] > pos[0] + 0.05
     assert status["web_updates"] > 10 and status["web_update_ms"] < 20
+
+
+def test_speed_sliders_set_keyboard_and_spacemouse_speeds():
+    from teleop.session import Session
+    from teleop.web.app import WebApp
+
+    class HoldToMove:
+        """Stands in for the keyboard: what the sliders change is its speeds."""
+
+        name = kind = "keyboard"
+        pos_speed, rot_speed = 0.15, 0.8
+
+        def poll(self, view, dt):
+            return []
+
+        def status(self):
+            return "connected"
+
+        def close(self):
+            pass
+
+    device = HoldToMove()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    app = WebApp(Session(), [device, GizmoDevice()], ["spacemouse: no SpaceMouse found"], port=port, camera=False)
+    try:
+        app.panel.pos_slider.value = 0.3
+        app.panel.rot_slider.value = 1.5
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and (device.pos_speed, device.rot_speed) != (0.3, 1.5):
+            time.sleep(0.05)
+        assert (device.pos_speed, device.rot_speed) == (0.3, 1.5)
+        text = app.panel._devices_text()
+        assert "keyboard" in text and "spacemouse" in text and "not started" in text
+    finally:
+        app.close()

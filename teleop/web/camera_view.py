@@ -24,6 +24,7 @@ import numpy as np
 
 IMAGE_SIZE = (192, 144)  # width, height
 FRAME_HZ = 4.0
+_GL_PROBLEM: str | None = None  # set once GL failed in this process: a second try can hang (GLFW)
 
 
 def choose_gl_backend() -> str:
@@ -99,13 +100,17 @@ class CameraFeed:
         """Model copy, MjData and renderer for `snap`'s model; None (after `fail`) if GL is not there."""
         import mujoco
 
+        global _GL_PROBLEM
         model, data = self._model_for(snap.model)
-        try:
-            renderer = mujoco.Renderer(model, self.size[1], self.size[0])
-        except Exception as exc:  # noqa: BLE001 - any GL failure means "no pictures", not a crash
-            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            backend = os.environ.get("MUJOCO_GL", "default")
-            self.problem = f"camera images are off: no OpenGL context (MUJOCO_GL={backend}: {reason}); {gl_help()}"
+        if _GL_PROBLEM is None:
+            try:
+                renderer = mujoco.Renderer(model, self.size[1], self.size[0])
+            except Exception as exc:  # noqa: BLE001 - any GL failure means "no pictures", not a crash
+                reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                backend = os.environ.get("MUJOCO_GL", "default")
+                _GL_PROBLEM = f"camera images are off: no OpenGL context (MUJOCO_GL={backend}: {reason}); {gl_help()}"
+        if _GL_PROBLEM is not None:
+            self.problem = _GL_PROBLEM
             self.fail(self.problem)
             return None
         return model, data, renderer
