@@ -70,9 +70,9 @@ def _start_devices(spec: str, args: argparse.Namespace, n_arms: int) -> tuple[li
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from teleop.web.camera_view import choose_gl_backend
+    from teleop.web.camera_view import warm_up
 
-    choose_gl_backend()  # before MuJoCo is imported: it reads MUJOCO_GL once
+    warm_up()  # find a GL backend for the camera picture while the scene compiles
     from teleop.cli_run import make_session
     from teleop.web.net import check_port_free, exposure_warning
 

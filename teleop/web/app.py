@@ -87,7 +87,7 @@ class WebApp:
         self.camera: CameraFeed | None = None
         if camera and session.scene.cameras:
             self.camera = CameraFeed(
-                lambda: self.sim.snapshot, lambda: self.panel.camera_name, self.panel.show_image,
+                lambda: self.sim.snapshot, tuple(session.scene.cameras), lambda: self.panel.camera_name, self.panel.show_image,
                 self._camera_failed, wanted=lambda: bool(self.server.get_clients()),
             )
         elif camera:
@@ -100,7 +100,7 @@ class WebApp:
         if self.camera is not None:
             # The GL context and model upload hold the GIL for ~0.1 s: do it before the loop runs.
             self.camera.start()
-            self.camera.ready.wait(10.0)
+            self.camera.ready.wait(60.0)
         self.sim.start()
         self.drawer.start()
         self.panel.start()
