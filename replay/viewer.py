@@ -138,12 +138,12 @@ class EpisodeViewer:
             self.step = step
             mujoco.mj_setState(self.model, self.data, ep.state[step], mujoco.mjtState.mjSTATE_INTEGRATION)
             mujoco.mj_kinematics(self.model, self.data)
-            with self.server.atomic():
-                if ep.ee_target.ndim == 3 and ep.ee_target.shape[1]:
-                    self.targets.batched_positions = ep.ee_target[step, :, :3]
-                    self.targets.batched_wxyzs = ep.ee_target[step, :, 3:7]
-                    self.ee_lines.points = np.stack([ep.ee_pose[step, :, :3], ep.ee_target[step, :, :3]], axis=1)
-                self.scene.update_from_mjdata(self.data)
+            if ep.ee_target.ndim == 3 and ep.ee_target.shape[1]:
+                self.targets.batched_positions = ep.ee_target[step, :, :3]
+                self.targets.batched_wxyzs = ep.ee_target[step, :, 3:7]
+                self.ee_lines.points = np.stack([ep.ee_pose[step, :, :3], ep.ee_target[step, :, :3]], axis=1)
+            self.scene.update_from_mjdata(self.data)
+            self.server.flush()  # mjviser flushes inside its atomic block, too early for viser's sender
             if int(self.slider.value) != step:
                 self.slider.value = step
             self.time_md.content = f"t = {step * self.dt:.2f} s / {ep.seconds:.2f} s"

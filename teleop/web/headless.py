@@ -5,8 +5,11 @@ Two things need care and live here:
 
 - viser's client talks to the server from a Web Worker, which Playwright's
   websocket events do not see. `COUNT_FRAMES` wraps the page's Worker
-  constructor so the worker's WebSocket counts the messages it receives
-  (`self.__wsFrames`, read with worker.evaluate).
+  constructor so that the worker counts the WebSocket messages it receives
+  (`self.__wsFrames`) and the decoded batches it hands to the page that move
+  one robot body (`self.__sceneUpdates`: one per scene update, even when viser
+  splits an update across two messages; panel-only batches excluded), read
+  with worker.evaluate.
 - To drag the gizmo we need where a world point lands on screen: `project`
   does the pinhole projection of viser's initial camera (position, look-at,
   vertical field of view, z up) onto the canvas' box.
@@ -38,7 +41,18 @@ COUNT_FRAMES = r"""
     const patch = `(() => { const W = self.WebSocket; self.__wsFrames = 0;
       class Counting extends W { constructor(...a) { super(...a);
         this.addEventListener('message', () => { self.__wsFrames += 1; }); } }
-      self.WebSocket = Counting; })();`;
+      self.WebSocket = Counting;
+      self.__sceneUpdates = 0; self.__sceneNode = null; const post = self.postMessage.bind(self);
+      const moves = (m) => m && m.type === 'SceneNodeUpdateMessage' && typeof m.name === 'string'
+        && m.name.startsWith('/bodies/') && (self.__sceneNode === null || m.name === self.__sceneNode);
+      self.postMessage = function (data, ...rest) {
+        if (data && data.type === 'message_batch' && Array.isArray(data.messages)) {
+          const hit = data.messages.find(moves);
+          if (hit) { self.__sceneNode = hit.name; self.__sceneUpdates += 1; }
+        }
+        return post(data, ...rest);
+      };
+    })();`;
     const load = options && options.type === 'module'
       ? `\nimport ${JSON.stringify(String(scriptUrl))};`
       : `\nimportScripts(${JSON.stringify(String(scriptUrl))});`;
@@ -83,6 +97,17 @@ def frames_received(page) -> int:
     for worker in page.workers:
         try:
             total += int(worker.evaluate("self.__wsFrames || 0"))
+        except Exception:  # noqa: BLE001 - a worker that went away counts nothing
+            pass
+    return total
+
+
+def scene_updates_received(page) -> int:
+    """Scene updates (message batches that move bodies) the page's viser worker handed to the page."""
+    total = 0
+    for worker in page.workers:
+        try:
+            total += int(worker.evaluate("self.__sceneUpdates || 0"))
         except Exception:  # noqa: BLE001 - a worker that went away counts nothing
             pass
     return total
