@@ -60,6 +60,7 @@ class WebApp:
         self.log = log
         self.camera_size = IMAGE_SIZE
         self.verified: dict[str, bool | None] = {}  # episode file -> replays bit for bit (None: checking)
+        self.last_saved: Path | None = None
         self._messages: list[str] = []
         self._status_due = 0.0
         self._closed = False
@@ -172,6 +173,7 @@ class WebApp:
         if not paths:
             return
         first = paths[0]
+        self.last_saved = Path(first)
         self.log(f"saved {', '.join(str(p) for p in paths)}")
         if not self.verify:
             return
@@ -192,17 +194,12 @@ class WebApp:
             self.note(f"{path.name}: replay check failed: {exc}")
 
     def last_saved_line(self) -> str:
-        if not self.session.saved_paths:
+        """The newest saved episode and whether it replays exactly, for the panel."""
+        if self.last_saved is None:
             return ""
-        path = self.session.saved_paths[-1]
-        for p in reversed(self.session.saved_paths):
-            if str(p) in self.verified:
-                path = p
-                break
-        state = self.verified.get(str(path), "unchecked")
-        word = {None: "checking exact replay…", True: "replays exactly ✓", False: "**does not replay exactly**"}.get(
-            state, "" if not self.verify else "")
-        return f"Last: `{Path(path).name}` {word}".rstrip()
+        state = self.verified.get(str(self.last_saved), "unchecked")
+        word = {None: "checking exact replay…", True: "replays exactly ✓", False: "**does not replay exactly**"}.get(state, "")
+        return f"Last: `{self.last_saved.name}` {word}".rstrip()
 
     # -- status (panel figures; a JSON file for scripts and tests) ---------
     def status(self) -> dict:

@@ -14,9 +14,6 @@ import socket
 
 from teleop.errors import UsageError
 
-LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
-
-
 def is_loopback(host: str) -> bool:
     if host == "localhost":
         return True

@@ -12,7 +12,6 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Callable
 
 import numpy as np
 import viser

@@ -104,29 +104,6 @@ class SimThread:
         """Run `action(session)` in the loop thread before the next tick."""
         self._actions.put(action)
 
-    def call(self, action: Callable[[Session], object], timeout: float = 30.0):
-        """Run `action(session)` in the loop thread and wait for its result (or run it here if stopped)."""
-        if not self._thread.is_alive():
-            with self.lock:
-                return action(self.session)
-        done = threading.Event()
-        box: list = [None, None]
-
-        def wrapped(session: Session) -> None:
-            try:
-                box[0] = action(session)
-            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
-                box[1] = exc
-            finally:
-                done.set()
-
-        self.submit(wrapped)
-        if not done.wait(timeout):
-            raise TimeoutError("the control loop did not answer")
-        if box[1] is not None:
-            raise box[1]
-        return box[0]
-
     def step_once(self) -> Snapshot:
         """One tick in the caller's thread, for benches and tests (the loop must not be running)."""
         if self._thread.is_alive():
