@@ -46,9 +46,8 @@ def test_replay_serve_port_in_use(episode):
     assert result.returncode == 2 and f"port {port}" in result.stderr
 
 
-@pytest.mark.skipif(headless.chromium_path() is None, reason="no Chromium (apt-get install chromium)")
 def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
-    playwright_api = pytest.importorskip("playwright.sync_api")
+    import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     port = headless.free_port()
     log = open(tmp_path / "replay.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
