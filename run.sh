@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One script for the two jobs on a fresh machine; each makes its own virtual environment.
-#   ./run.sh            the browser teleop session (Panda, lift), recording into ./episodes
+#   ./run.sh [FLAGS]    the browser teleop session (Panda, lift), recording into ./episodes; FLAGS go to `teleop serve`
 #   ./run.sh test       installs everything (LeRobot, browser, X server) and runs the whole test suite
 #   ./run.sh ARGS...    any other `teleop` command, e.g. ./run.sh run --device script:scenes/scripts/lift_pick.json
 set -euo pipefail
@@ -61,7 +61,9 @@ debian_test_packages() {
     fi
 }
 
-case "${1:-serve}" in
+first=${1:-serve}
+case "$first" in -*) first=serve; set -- serve "$@" ;; esac
+case "$first" in
     test)
         shift || true
         debian_test_packages
