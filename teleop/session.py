@@ -108,6 +108,7 @@ class Session:
         self.saved_paths: list[Path] = []
         self.last_verify = None
         self.ik_failures = 0
+        self.record_seconds = 0.0  # control-thread time spent recording (state capture, packing, queueing)
         self.clamped = 0
         self.ignored_commands = 0
         self.messages: list[str] = []
@@ -248,9 +249,11 @@ class Session:
         # exactly what stepping state k under ctrl k produces.
         writer = self.writer
         if writer is not None:
+            t_rec = time.perf_counter()
             state_before = self._state()
             qpos_before, qvel_before = self.data.qpos.copy(), self.data.qvel.copy()
             time_before = self.data.time
+            self.record_seconds += time.perf_counter() - t_rec
 
         ik_ok = True
         ctrl = self.data.ctrl
@@ -272,7 +275,9 @@ class Session:
         self.tracking_errors.append(errors)
         self.steps += 1
         if writer is not None:
+            t_rec = time.perf_counter()
             writer.append(self._record(time_before, state_before, qpos_before, qvel_before, commands))
+            self.record_seconds += time.perf_counter() - t_rec
         return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, success=False, events=tuple(events))
 
     def _state(self) -> np.ndarray:
