@@ -13,9 +13,6 @@ user errors.
 from __future__ import annotations
 
 import copy
-import errno
-import ipaddress
-import socket
 import sys
 import threading
 import time
@@ -24,6 +21,7 @@ import mujoco
 import numpy as np
 
 from replay.episode import Episode, EpisodeError
+from replay.listen import ListenError, check_port_free, is_loopback
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
 CAMERA_POSITION = (1.45, -1.05, 0.95)
@@ -32,33 +30,6 @@ CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 
 class ServeError(Exception):
     """The viewer cannot start (port taken, bad host, empty episode); one line for the user."""
-
-
-def _check_port(host: str, port: int) -> None:
-    if not 0 < port <= 65535:
-        raise ServeError(f"--port {port}: must be 1..65535")
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        raise ServeError(f"--host {host}: cannot listen there ({exc.strerror})") from None
-    for family, kind, proto, _, addr in infos:
-        with socket.socket(family, kind, proto) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                probe.bind(addr)
-            except OSError as exc:
-                if exc.errno == errno.EADDRINUSE:
-                    raise ServeError(f"port {port} is already in use on {host}; pass --port N") from None
-                raise ServeError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
-
-
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class EpisodeViewer:
@@ -180,7 +151,10 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -
     import viser
 
     try:
-        _check_port(host, port)
+        try:
+            check_port_free(host, port)
+        except ListenError as exc:
+            raise ServeError(str(exc)) from None
         server = viser.ViserServer(host=host, port=port, label="teleop replay", verbose=False)
         if server.get_port() != port:
             server.stop()
@@ -195,7 +169,7 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -
     except (ServeError, EpisodeError) as exc:
         print(f"teleop replay: error: {exc}", file=sys.stderr)
         return 2
-    if not _loopback(host):
+    if not is_loopback(host):
         print(f"warning: listening on {host}:{port}: anyone who can reach this port can see this episode", file=sys.stderr)
     shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
     print(f"open http://{shown}:{port} in a browser to view {episode.path.name} (Ctrl-C to stop)", flush=True)

@@ -8,20 +8,11 @@ a taken port is an error, and any host other than loopback gets a warning.
 
 from __future__ import annotations
 
-import errno
-import ipaddress
-import socket
-
+from replay import listen
+from replay.listen import is_loopback
 from teleop.errors import UsageError
 
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
+__all__ = ["check_port_free", "exposure_warning", "is_loopback", "page_url"]
 
 def exposure_warning(host: str, port: int) -> str | None:
     """The warning to print when the session is reachable from other machines."""
@@ -35,25 +26,10 @@ def exposure_warning(host: str, port: int) -> str | None:
 
 def check_port_free(host: str, port: int) -> None:
     """Raise UsageError naming the port if something already listens there (or the host is wrong)."""
-    if not 0 < port <= 65535:
-        raise UsageError(f"--port {port}: must be 1..65535")
     try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        raise UsageError(f"--host {host}: cannot listen there ({exc.strerror})") from None
-    for family, kind, proto, _, addr in infos:
-        with socket.socket(family, kind, proto) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # TIME_WAIT is not "in use"
-            try:
-                probe.bind(addr)
-            except OSError as exc:
-                if exc.errno == errno.EADDRINUSE:
-                    raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N") from None
-                if exc.errno in (errno.EADDRNOTAVAIL, errno.EAFNOSUPPORT):
-                    raise UsageError(f"--host {host}: not an address of this machine") from None
-                if exc.errno == errno.EACCES:
-                    raise UsageError(f"port {port}: permission denied (ports below 1024 need privileges)") from None
-                raise UsageError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
+        listen.check_port_free(host, port)
+    except listen.ListenError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def page_url(host: str, port: int) -> str:
