@@ -13,6 +13,7 @@ import math
 import platform
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -26,6 +27,7 @@ from teleop.command import Command
 from teleop.ik import ArmIK
 
 SCHEMA_VERSION = 1
+TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
 MAX_PHYSICS_STEP = 0.002  # s; the control period is split into equal steps no longer than this
 
 
@@ -133,7 +135,8 @@ class Session:
             self.arms.append(state)
         self.base_pos = [self.data.xpos[self.model.jnt_bodyid[self.model.joint(a.joints[0]).id]].copy() for a in self.scene.arms]
         self.steps = 0
-        self.tracking_errors: list[np.ndarray] = []
+        # Per-tick errors for summaries; bounded so a long browser session does not grow without end.
+        self.tracking_errors: deque[np.ndarray] = deque(maxlen=TRACKING_HISTORY)
         self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
 
     def _actuator_for_joint(self, joint: str) -> int:
@@ -376,7 +379,7 @@ class Session:
         self.record.directory.mkdir(parents=True, exist_ok=True)
         index = next_episode_index(self.record.directory)
         self.writer = EpisodeWriter(self.record.directory, index, self.record.formats, self.metadata(index))
-        self.tracking_errors = []
+        self.tracking_errors.clear()
         self.steps = 0
 
     def save_episode(self, complete: bool = True) -> list[Path]:
