@@ -31,6 +31,12 @@ def measure(quick: bool = False) -> dict[str, float]:
     center = arm.target_pos.copy()
     quat = arm.target_quat.copy()
 
+    # Warm up first: the first few hundred milliseconds of a fresh process run
+    # up to twice as slow (clock ramp, caches); the figures are steady-state medians.
+    for i in range(1000):
+        arm.ik.solve(center + _circle(i), quat)
+    arm.ik.reset(arm.ik.home)
+
     # IK alone: one solve toward a moving target.
     solve_us = []
     for i in range(n):
