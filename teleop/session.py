@@ -254,8 +254,10 @@ class Session:
         if writer is not None:
             t_rec = time.perf_counter()
             state_before = self._state()
-            qpos_before, qvel_before = self.data.qpos.copy(), self.data.qvel.copy()
-            time_before = self.data.time
+            # mjSTATE_INTEGRATION starts with time, qpos, qvel: views, no more copies.
+            nq, nv = self.model.nq, self.model.nv
+            qpos_before, qvel_before = state_before[1 : 1 + nq], state_before[1 + nq : 1 + nq + nv]
+            time_before = state_before[0]
             self.record_seconds += time.perf_counter() - t_rec
 
         ik_ok = True
@@ -302,9 +304,10 @@ class Session:
             ee_pose[i, :3] = self.data.site_xpos[a.site_id]
             mujoco.mju_mat2Quat(ee_pose[i, 3:], self.data.site_xmat[a.site_id])
             gripper[i] = 1.0 if a.gripper_open else 0.0
-        # Command objects go as they are: the writer thread turns them into dicts.
+        # Arrays may be views (append copies them into one row at once); Command objects go
+        # as they are: the writer thread turns them into dicts.
         return StepRecord(
-            time=float(t), state=state, ctrl=self.data.ctrl.copy(), ee_target=ee_target, ee_pose=ee_pose,
+            time=float(t), state=state, ctrl=self.data.ctrl, ee_target=ee_target, ee_pose=ee_pose,
             qpos=qpos, qvel=qvel, gripper=gripper, commands=list(commands), wall_time=time.time(),
         )
 
