@@ -1,10 +1,10 @@
 """Robots and tasks: everything needed to compile a scene for a seed."""
 
-from scenes.build import Scene, build_scene
+from scenes.build import Scene, actuator_for_joint, build_scene
 from scenes.robot import BUILTIN_ROBOTS, ArmSpec, GripperSpec, Mount, RobotSpec, SceneError, load_robot
 from scenes.tasks import TASKS
 
 __all__ = [
     "ArmSpec", "BUILTIN_ROBOTS", "GripperSpec", "Mount", "RobotSpec", "Scene", "SceneError", "TASKS",
-    "build_scene", "load_robot",
+    "actuator_for_joint", "build_scene", "load_robot",
 ]

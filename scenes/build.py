@@ -44,8 +44,7 @@ class Scene:
         for arm in self.arms:
             for name, value in zip(arm.joints, arm.home):
                 data.qpos[self.model.joint(name).qposadr[0]] = value
-            for name, value in zip(arm.joints, arm.home):
-                act = _position_actuator_for(self.model, name)
+                act = actuator_for_joint(self.model, name)
                 if act is not None:
                     data.ctrl[act] = value
             if arm.gripper is not None:
@@ -56,7 +55,8 @@ class Scene:
         return self.task.success(self.model, data)
 
 
-def _position_actuator_for(model: mujoco.MjModel, joint: str) -> int | None:
+def actuator_for_joint(model: mujoco.MjModel, joint: str) -> int | None:
+    """The actuator that drives `joint` directly (every arm joint has one after building)."""
     jid = model.joint(joint).id
     for i in range(model.nu):
         if model.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT and model.actuator_trnid[i, 0] == jid:

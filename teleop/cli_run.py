@@ -119,7 +119,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     scripted = all(d.kind == "script" for d in devices)
     if args.seconds is None and not scripted:
         log("running until Ctrl-C (give --seconds to stop by itself)")
-    # A second Ctrl-C during saving must not cut the file short: ignore it there.
     episodes = []
     wall_start = time.perf_counter()
     interrupted = False
@@ -130,7 +129,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             for d in devices:
                 if hasattr(d, "restart"):
                     d.restart()
-            session.start_episode() if args.record else None
+            if args.record:
+                session.start_episode()
             ik_before = session.ik_failures
             t0 = time.perf_counter()
             sim0 = session.time

@@ -21,7 +21,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from scenes import RobotSpec, Scene, build_scene, load_robot
+from scenes import RobotSpec, Scene, actuator_for_joint, build_scene, load_robot
 from scenes.arena import TABLE_TOP
 from teleop.command import Command
 from teleop.ik import ArmIK
@@ -74,7 +74,6 @@ class StepResult:
     time: float
     ik_ok: bool
     tracking_error_m: np.ndarray  # per arm, target vs actual after the step
-    success: bool
     events: tuple[str, ...] = ()
 
 
@@ -128,7 +127,9 @@ class Session:
         self.arms: list[ArmState] = []
         for arm in self.scene.arms:
             ik = ArmIK(self.scene.xml, self.scene.assets, arm, self.dt)
-            ctrl_ids = np.array([self._actuator_for_joint(j) for j in arm.joints])
+            ctrl_ids = np.array([actuator_for_joint(self.model, j) for j in arm.joints])
+            if None in list(ctrl_ids):
+                raise ValueError(f"an arm joint of {arm.ee_site} has no actuator")
             gripper_id = self.model.actuator(arm.gripper.actuator).id if arm.gripper else None
             state = ArmState(ik=ik, site_id=self.model.site(arm.ee_site).id, ctrl_ids=ctrl_ids, gripper_id=gripper_id)
             state.target_pos, state.target_quat = ik.ee_pose()
@@ -138,13 +139,6 @@ class Session:
         # Per-tick errors for summaries; bounded so a long browser session does not grow without end.
         self.tracking_errors: deque[np.ndarray] = deque(maxlen=TRACKING_HISTORY)
         self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
-
-    def _actuator_for_joint(self, joint: str) -> int:
-        jid = self.model.joint(joint).id
-        for i in range(self.model.nu):
-            if self.model.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT and self.model.actuator_trnid[i, 0] == jid:
-                return i
-        raise ValueError(f"joint {joint} has no actuator")
 
     def reset(self, seed: int | None = None) -> None:
         """New episode layout: the next seed unless one is given. Ends a recording first."""
@@ -283,7 +277,7 @@ class Session:
             t_rec = time.perf_counter()
             writer.append(self._record(time_before, state_before, qpos_before, qvel_before, commands))
             self.record_seconds += time.perf_counter() - t_rec
-        return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, success=False, events=tuple(events))
+        return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
 
     def _state(self) -> np.ndarray:
         state = np.empty(self.nstate)

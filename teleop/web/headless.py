@@ -91,26 +91,25 @@ def open_page(browser, url: str, count_frames: bool = False, size=(1280, 800), t
     return page
 
 
-def frames_received(page) -> int:
-    """WebSocket messages the page's viser worker received so far (needs count_frames=True)."""
+def _worker_counter(page, name: str) -> int:
+    """Sum a counter the init script keeps in each of the page's workers."""
     total = 0
     for worker in page.workers:
         try:
-            total += int(worker.evaluate("self.__wsFrames || 0"))
+            total += int(worker.evaluate(f"self.{name} || 0"))
         except Exception:  # noqa: BLE001 - a worker that went away counts nothing
             pass
     return total
+
+
+def frames_received(page) -> int:
+    """WebSocket messages the page's viser worker received so far (needs count_frames=True)."""
+    return _worker_counter(page, "__wsFrames")
 
 
 def scene_updates_received(page) -> int:
     """Scene updates (message batches that move bodies) the page's viser worker handed to the page."""
-    total = 0
-    for worker in page.workers:
-        try:
-            total += int(worker.evaluate("self.__sceneUpdates || 0"))
-        except Exception:  # noqa: BLE001 - a worker that went away counts nothing
-            pass
-    return total
+    return _worker_counter(page, "__sceneUpdates")
 
 
 def dismiss_toasts(page) -> None:
