@@ -8,13 +8,18 @@ Figures (`measure`), on real recordings (lift, Panda, 30 Hz, the scripted pick):
   render_fps_default    the same with MuJoCo's own settings (shadows, 4x MSAA, reflections,
                         infinite floor, the model's 640x480 buffer), for comparison
   export_frames_per_s   `teleop export` end to end (replay, rendering front + wrist at
-                        224x224, LeRobot add_frame/save_episode, AV1 video encoding,
-                        finalize) in dataset frames per second of wall time, best of 2 runs
+                        224x224, LeRobot add_frame/save_episode, H.264 video encoding (the
+                        default codec), finalize) in dataset frames per second of wall time,
+                        best of 2 runs
+  export_frames_per_s_av1  the same with --vcodec av1 (LeRobot's default codec), one run
 The GL backend is MUJOCO_GL if set, else EGL, else OSMesa (on a CPU both are Mesa llvmpipe).
+The figures are taken in a fresh Python process, set up as `teleop export` sets itself up
+(other benches in the same process would already have loaded OpenGL their own way).
 """
 
 from __future__ import annotations
 
+import json
 import statistics
 import subprocess
 import sys
@@ -61,18 +66,29 @@ def render_rate(path: Path, cameras: list[str], settings, frames: int | None = N
     return statistics.median(best)
 
 
-def export_rate(paths: list[Path], out: Path) -> float:
+def export_rate(paths: list[Path], out: Path, vcodec: str | None = None) -> float:
     from replay.export import ExportOptions, export_dataset
 
-    opts = ExportOptions(out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, progress=False)
+    opts = ExportOptions(
+        out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False
+    )
     summary = export_dataset(paths, opts, log=lambda line: None)
     return summary.frames_per_s
 
 
 def measure(quick: bool) -> dict[str, float]:
+    """The figures, taken in a fresh process (see the module doc)."""
+    cmd = [sys.executable, "-m", "bench.export"] + (["--quick"] if quick else [])
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800)
+    if done.returncode != 0:
+        raise RuntimeError(f"export bench failed: {done.stderr.strip()[-500:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _measure(quick: bool) -> dict[str, float]:
     from teleop.cli_export import quiet_environment
 
-    quiet_environment()  # no encoder banners or dataset progress bars in the figures' output
+    quiet_environment()  # as `teleop export`: no banners or extra progress bars, renderer threads
     from replay.export import _lerobot
     from replay.render import DEFAULTS, TUNED
 
@@ -85,14 +101,13 @@ def measure(quick: bool) -> dict[str, float]:
         out = {"render_fps": round(render, 1), "render_fps_default": round(default, 1)}
         try:
             _lerobot()
-        except ValueError:  # LeRobot not installed: the export figure cannot be taken
+        except ValueError:  # LeRobot not installed: the export figures cannot be taken
             return out
         runs = [export_rate(paths, tmp / f"dataset{i}") for i in range(1 if quick else 2)]
         out["export_frames_per_s"] = round(max(runs), 1)
+        out["export_frames_per_s_av1"] = round(export_rate(paths, tmp / "dataset_av1", vcodec="av1"), 1)
     return out
 
 
 if __name__ == "__main__":
-    import json
-
-    print(json.dumps(measure("--quick" in sys.argv)))
+    print(json.dumps(_measure("--quick" in sys.argv)))

@@ -32,6 +32,17 @@ from replay.render import FastRenderer, RenderError, warm_up
 LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
 DEFAULT_CAMERAS = ("front", "wrist")
 
+# Video codecs, as LeRobot's RGBEncoderConfig settings. Measured on rendered 224x224 frames
+# (GOP 2, as LeRobot sets): H.264 veryfast at CRF 20 gives AV1's PSNR (within 0.4 dB) at
+# 1.1x its size, encodes in ~1 ms a frame instead of ~4.5 and decodes twice as fast when
+# training reads it back. AV1 (LeRobot's own default) stays one flag away for the smallest files.
+VIDEO_CODECS: dict[str, dict] = {
+    "h264": {"vcodec": "h264", "preset": "veryfast", "crf": 20},
+    "av1": {"vcodec": "libsvtav1"},
+    "hevc": {"vcodec": "hevc", "preset": "veryfast", "crf": 24, "extra_options": {"x265-params": "log-level=error"}},
+}
+DEFAULT_CODEC = "h264"
+
 
 class ExportError(ValueError):
     """Bad export input (files, flags, an existing dataset); the message is one line."""
@@ -47,6 +58,7 @@ class ExportOptions:
     task: str | None = None  # None: each episode's recorded task text
     only_success: bool = False
     video: bool = True
+    vcodec: str | None = None  # a VIDEO_CODECS key; None: h264, or with --append what the dataset has
     append: bool = False
     progress: bool = True
     on_episode: Callable[[int, int], None] | None = None  # (episodes, frames) written so far, after each save
@@ -77,7 +89,7 @@ class ExportSummary:
         text = (
             f"exported {self.episodes} episode{'s' * (self.episodes != 1)}, {self.frames} frames "
             f"({self.frames / self.fps if self.fps else 0:.1f} s at {self.fps} fps) in {self.seconds:.1f} s "
-            f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, {self.dataset_episodes} episodes in all)"
+            f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, {self.dataset_episodes} episode{'s' * (self.dataset_episodes != 1)} in all)"
         )
         skipped = []
         if self.skipped_failed:
@@ -229,10 +241,39 @@ def _check_appendable(meta, spec: dict, fps: int, robot_type: str, out: Path) ->
         raise ExportError(f"--append: {out} does not match these episodes: " + "; ".join(problems[:4]))
 
 
+def _encoder(settings: dict):
+    """LeRobot's RGB encoder config, or a one-line ExportError when this PyAV cannot encode it."""
+    from lerobot.configs.video import RGBEncoderConfig
+
+    try:
+        return RGBEncoderConfig(**settings)
+    except (ValueError, ImportError) as exc:
+        raise ExportError(f"video codec {settings['vcodec']}: {str(exc).strip().splitlines()[0]}") from None
+
+
+def _dataset_encoder(meta, wanted: str | None, out: Path):
+    """The encoder an existing dataset's videos were made with: appended episodes share its files."""
+    from lerobot.configs.video import VIDEO_CODECS_ALIASES, encoder_config_from_video_info
+
+    infos = [ft.get("info") or {} for ft in meta.features.values() if ft.get("dtype") == "video"]
+    if not infos:
+        return None
+    stream = infos[0].get("video.codec")  # as the video stream names it: h264, hevc, av1
+    encoder = VIDEO_CODECS_ALIASES.get(stream, stream)
+    if wanted is not None and encoder and encoder != VIDEO_CODECS[wanted]["vcodec"]:
+        raise ExportError(f"--append: {out} holds {stream} video; leave out --vcodec or give --vcodec {stream}")
+    try:
+        return encoder_config_from_video_info(infos[0])
+    except (ValueError, ImportError) as exc:
+        raise ExportError(f"--append: cannot encode {out}'s video codec {stream}: {str(exc).strip().splitlines()[0]}") from None
+
+
 def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, robot_type: str, queue: int):
     """(dataset, created) for --out: a new dataset, or the existing one with --append."""
     out = opts.out
-    common = dict(streaming_encoding=opts.video, encoder_queue_maxsize=queue)
+    # One thread per camera's encoder: cameras already encode in parallel, and more threads
+    # only fight the renderer for the cores.
+    common = dict(streaming_encoding=opts.video, encoder_queue_maxsize=queue, encoder_threads=1)
     if out.exists():
         if not opts.append:
             raise ExportError(f"--out {out} already exists (add --append to add episodes to it, or choose a new directory)")
@@ -241,17 +282,22 @@ def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, rob
         from lerobot.datasets import LeRobotDatasetMetadata
 
         try:  # read-only first: a dataset that does not fit is never opened for writing
-            _check_appendable(LeRobotDatasetMetadata(opts.repo_id, root=out), spec, fps, robot_type, out)
-            ds = LeRobotDataset.resume(opts.repo_id, root=out, image_writer_threads=0 if opts.video else 2, **common)
+            meta = LeRobotDatasetMetadata(opts.repo_id, root=out)
+            _check_appendable(meta, spec, fps, robot_type, out)
+            encoder = _dataset_encoder(meta, opts.vcodec, out)
+            ds = LeRobotDataset.resume(
+                opts.repo_id, root=out, image_writer_threads=0 if opts.video else 2, rgb_encoder=encoder, **common
+            )
         except ExportError:
             raise
         except Exception as exc:  # noqa: BLE001 - LeRobot raises many kinds for a broken dataset
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise ExportError(f"--append: cannot open {out} as a LeRobot dataset: {first}") from None
         return ds, False
+    encoder = _encoder(VIDEO_CODECS[opts.vcodec or DEFAULT_CODEC]) if opts.video else None
     ds = LeRobotDataset.create(
         opts.repo_id, fps, spec, root=out, robot_type=robot_type, use_videos=opts.video,
-        image_writer_threads=0 if opts.video else 2, **common,
+        image_writer_threads=0 if opts.video else 2, rgb_encoder=encoder, **common,
     )
     return ds, True
 
@@ -269,6 +315,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     paths = list(paths)
     if opts.action not in ACTION_MODES:
         raise ExportError(f"--action {opts.action!r}: choose one of {', '.join(ACTION_MODES)}")
+    if opts.vcodec is not None and opts.vcodec not in VIDEO_CODECS:
+        raise ExportError(f"--vcodec {opts.vcodec!r}: choose one of {', '.join(VIDEO_CODECS)}")
     if not opts.repo_id or not opts.repo_id.strip():
         raise ExportError("--repo-id must not be empty")
     if opts.out.exists() and not opts.append:

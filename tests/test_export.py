@@ -175,6 +175,30 @@ def test_only_success_and_append(recorded, tmp_path):
     assert _open(out, "test/append").num_episodes == 3
 
 
+def _codec(out, repo_id: str, key: str = "observation.images.front") -> str:
+    return _open(out, repo_id).meta.features[key]["info"]["video.codec"]
+
+
+def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tmp_path):
+    assert _codec(exported["out"], "test/lift") == "h264"  # the default
+    out = tmp_path / "av1"
+    opts = dict(out=out, repo_id="test/av1", cameras=["front"], image_size=(32, 32), progress=False)
+    export_dataset(recorded["files"][:1], ExportOptions(**opts, vcodec="av1"))
+    assert _codec(out, "test/av1") == "av1"
+
+    # Appended episodes go into the same video files, so they take the dataset's codec.
+    with pytest.raises(ExportError, match="holds av1 video"):
+        export_dataset(recorded["files"][1:2], ExportOptions(**opts, vcodec="h264", append=True))
+    export_dataset(recorded["files"][1:2], ExportOptions(**opts, append=True))
+    ds = _open(out, "test/av1")
+    assert ds.num_episodes == 2 and _codec(out, "test/av1") == "av1"
+    first, last = ds[0]["observation.images.front"], ds[ds.num_frames - 1]["observation.images.front"]
+    assert first.std() > 0.05 and last.std() > 0.05 and np.abs(first - last).mean() > 0.02
+
+    with pytest.raises(ExportError, match="--vcodec 'vp9'"):
+        export_dataset(recorded["files"][:1], ExportOptions(**{**opts, "out": tmp_path / "vp9"}, vcodec="vp9"))
+
+
 def test_ee_actions_and_images_without_video(recorded, tmp_path):
     ep = load_episode(recorded["files"][0])
     files = [recorded["files"][0]]
@@ -314,7 +338,7 @@ def test_cli_help_names_every_flag():
     result = run_cli("export", "--help")
     assert result.returncode == 0
     for flag in ("--out", "--repo-id", "--cameras", "--image-size", "--action", "--task", "--only-success",
-                 "--no-video", "--append"):
+                 "--no-video", "--vcodec", "--append"):
         assert flag in result.stdout
     info = json.dumps(result.stdout)
     assert "joint" in info and "ee_delta" in info and "ee_pose" in info
