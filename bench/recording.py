@@ -3,18 +3,21 @@
 Figures (`measure`), on the real session (lift, Panda, 25 substeps of 2 ms, IK each tick,
 recording MCAP and HDF5):
   record_overhead_pct    how much longer a control tick takes when recording, in a loop that
-                         runs in real time at 20 Hz as a person drives: mean tick latency,
-                         recorded vs not, over short alternating blocks (noisy on a shared
-                         machine)
-  record_control_thread_pct  the recording work timed inside Session.step (state capture,
-                         packing, queueing, and any wait for the GIL the writer thread holds)
-                         as % of an unrecorded control step
+                         runs in real time at 20 Hz as a person drives: median over pairs of
+                         short alternating blocks (one episode open throughout, the session's
+                         writer detached in the unrecorded blocks) of the mean tick latency,
+                         recorded vs not
+  record_control_thread_pct  the recording work timed inside Session.step in that loop (state
+                         capture into the recorder's row, the other fields, commit, and any
+                         wait for the GIL the writer thread holds) as % of an unrecorded tick
+  record_control_us      that work in microseconds per tick
+  record_paced_step_ms   the unrecorded tick in that loop (longer than flat out: caches and
+                         clocks go cold while the loop sleeps)
   record_flat_out_overhead_pct  the same running flat out (scripted batch recording), where
                          the writer thread competes with the control thread for CPU and GIL
   record_step_ms         the unrecorded control step, flat out
-  record_append_us       median cost of EpisodeWriter.append on the control thread
-  record_writer_cpu_pct  writer-thread CPU per step (encoding, IO) as % of a step; it
-                         runs beside the control thread (mj_step releases the GIL)
+  record_writer_cpu_pct  writer-thread CPU per step (encoding, IO) as % of a flat-out step;
+                         it runs beside the control thread (mj_step releases the GIL)
   replay_states_per_s    state mode, poses only (mj_setState + mj_kinematics per state)
   replay_forward_states_per_s  state mode with mj_forward per state
   resim_realtime_factor  action replay with bit-for-bit verification: sim s / wall s
@@ -182,55 +185,43 @@ def _stop_recording(session) -> tuple[Path, float]:
     return paths[0], writer.cpu_seconds
 
 
-def _paced(session, commands, steps: int, period: float, record: bool) -> tuple[float, float]:
-    """Mean tick latency (s) with ticks started every `period` s, like the real-time
-    loop of a session; and writer CPU per step."""
-    if record:
-        session.start_episode()
-    lat = []
+def _paced(session, commands, blocks: int, block_steps: int, period: float) -> tuple[list[float], list[float]]:
+    """Mean tick latency (s) of alternating unrecorded / recorded blocks, ticks started every
+    `period` s like a session's real-time loop. One episode stays open throughout; in the
+    unrecorded blocks the session just has no writer, so the writer thread idles. Blocks are
+    short (under a second) so that the two halves of a pair see the machine alike."""
+    session.start_episode()
+    writer = session.writer
+    base, rec = [], []
     next_tick = time.perf_counter()
-    for k in range(steps):
-        while (now := time.perf_counter()) < next_tick:
-            time.sleep(max(0.0, next_tick - now - 0.0003))
-        t0 = time.perf_counter()
-        session.step(commands(k))
-        lat.append(time.perf_counter() - t0)
-        next_tick = max(next_tick + period, time.perf_counter())
-    cpu = _stop_recording(session)[1] / steps if record else 0.0
-    return statistics.fmean(lat), cpu
+    for b in range(2 * blocks):
+        recording = b % 2 == 1
+        session.writer = writer if recording else None
+        lat = 0.0
+        for k in range(block_steps):
+            while (now := time.perf_counter()) < next_tick:
+                time.sleep(max(0.0, next_tick - now - 0.0003))
+            t0 = time.perf_counter()
+            session.step(commands(k))
+            lat += time.perf_counter() - t0
+            next_tick = max(next_tick + period, time.perf_counter())
+        (rec if recording else base).append(lat / block_steps)
+    session.writer = writer
+    _stop_recording(session)
+    return base, rec
 
 
-def _flat_out(session, commands, steps: int, record: bool) -> tuple[float, Path | None]:
+def _flat_out(session, commands, steps: int, record: bool) -> tuple[float, Path | None, float]:
     """Seconds per step running as fast as possible; a recorded run is timed from
-    start_episode to the file's close, so the writer thread's whole work counts."""
+    start_episode to the file's close, so the writer thread's whole work counts.
+    Also the file and the writer thread's CPU seconds."""
     t0 = time.perf_counter()
     if record:
         session.start_episode()
     for k in range(steps):
         session.step(commands(k))
-    path = _stop_recording(session)[0] if record else None
-    return (time.perf_counter() - t0) / steps, path
-
-
-def _append_cost(tmp: Path) -> float:
-    """Median seconds of one EpisodeWriter.append (the part on the control thread)."""
-    from recorder import EpisodeWriter, StepRecord
-
-    xml = pusher_xml()
-    model = mujoco.MjModel.from_xml_string(xml)
-    meta = episode_meta(model, xml, 999, 0, SUBSTEPS)
-    nstate = meta["nstate"]
-    writer = EpisodeWriter(tmp, 999, ("mcap", "hdf5"), meta)
-    times = []
-    for k in range(2000):
-        step = StepRecord(time=k * 0.05, state=np.zeros(nstate), ctrl=np.zeros(model.nu), ee_target=np.zeros((1, 7)),
-                          ee_pose=np.zeros((1, 7)), qpos=np.zeros(model.nq), qvel=np.zeros(model.nv),
-                          gripper=np.ones(1), commands=[], wall_time=time.time())
-        t0 = time.perf_counter()
-        writer.append(step)
-        times.append(time.perf_counter() - t0)
-    writer.discard()
-    return statistics.median(times)
+    path, cpu = _stop_recording(session) if record else (None, 0.0)
+    return (time.perf_counter() - t0) / steps, path, cpu
 
 
 def measure(quick: bool) -> dict[str, float]:
@@ -238,26 +229,21 @@ def measure(quick: bool) -> dict[str, float]:
 
     # Short alternating blocks, compared pairwise: the machine is shared, and load
     # from elsewhere shifts both halves of a pair alike.
-    steps, reps = (30, 3) if quick else (40, 9)
+    blocks, block_steps = (6, 10) if quick else (24, 16)
     flat_steps, flat_reps = (300, 1) if quick else (800, 3)  # long: the file's setup and close count too
     period = SUBSTEPS * TIMESTEP  # real time: the writer thread gets the idle part of each tick, as in a session
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         session, commands = _session(tmp)
-        paced_base, paced_rec, cpu, flat_base, flat_rec = [], [], [], [], []
+        flat_base, flat_rec = [], []
         path = None
         session.record_seconds = 0.0
-        for _ in range(reps):
-            paced_base.append(_paced(session, commands, steps, period, False)[0])
-            lat, c = _paced(session, commands, steps, period, True)
-            paced_rec.append(lat)
-            cpu.append(c)
-        control_share = session.record_seconds / (reps * steps)
+        paced_base, paced_rec = _paced(session, commands, blocks, block_steps, period)
+        control_share = session.record_seconds / (blocks * block_steps)
         for _ in range(flat_reps):
             flat_base.append(_flat_out(session, commands, flat_steps, False)[0])
-            t, path = _flat_out(session, commands, flat_steps, True)
+            t, path, writer_cpu = _flat_out(session, commands, flat_steps, True)
             flat_rec.append(t)
-        append_s = _append_cost(tmp)
         episode = load_episode(path)
         model = episode.build_model()
         passes = 3 if quick else 10
@@ -272,13 +258,15 @@ def measure(quick: bool) -> dict[str, float]:
         fwd_rate = episode.steps / (time.perf_counter() - t0)
         result = resimulate(episode, verify=True, model=model, warn=False)
     step = statistics.median(flat_base)
+    paced_step = statistics.median(paced_base)
     return {
         "record_overhead_pct": round(100.0 * statistics.median(r / b - 1 for b, r in zip(paced_base, paced_rec)), 2),
-        "record_control_thread_pct": round(100.0 * control_share / step, 2),
+        "record_control_thread_pct": round(100.0 * control_share / paced_step, 2),
         "record_flat_out_overhead_pct": round(100.0 * statistics.median(r / b - 1 for b, r in zip(flat_base, flat_rec)), 2),
         "record_step_ms": round(1000.0 * step, 3),
-        "record_append_us": round(1e6 * append_s, 2),
-        "record_writer_cpu_pct": round(100.0 * statistics.median(cpu) / step, 2),
+        "record_paced_step_ms": round(1000.0 * paced_step, 3),
+        "record_control_us": round(1e6 * control_share, 1),
+        "record_writer_cpu_pct": round(100.0 * writer_cpu / (flat_steps * step), 2),
         "replay_states_per_s": round(kin_rate),
         "replay_forward_states_per_s": round(fwd_rate),
         "resim_realtime_factor": round(result.realtime_factor, 1),

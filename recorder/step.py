@@ -1,4 +1,4 @@
-"""One control step as the session hands it to the recorder, and its packed row form."""
+"""One control step as a caller hands it to the recorder, and how it fills a row."""
 
 from __future__ import annotations
 
@@ -29,23 +29,19 @@ class StepRecord:
     wall_time: float = 0.0  # time.time() at the step
 
 
-def pack(step: StepRecord) -> np.ndarray:
-    """Copy a step's numbers into one fresh float64 row (schema.step_layout order).
+def pack_into(row: np.ndarray, step: StepRecord, cols: dict[str, slice]) -> None:
+    """Copy a step's numbers into `row` (one float64 row, fields at `cols`).
 
-    A single concatenate is the cheapest copy that also detaches the row from
-    arrays the caller will keep mutating (MjData views).
+    Sizes are checked field by field: numpy would otherwise broadcast a
+    one-number array across a whole field.
     """
-    return np.concatenate(
-        (
-            (step.time, step.wall_time),
-            step.state,
-            step.ctrl,
-            np.ravel(step.ee_target),
-            np.ravel(step.ee_pose),
-            step.qpos,
-            step.qvel,
-            np.ravel(step.gripper),
-        ),
-        dtype=np.float64,
+    fields = (
+        ("time", step.time), ("wall_time", step.wall_time), ("state", step.state), ("ctrl", step.ctrl),
+        ("ee_target", step.ee_target), ("ee_pose", step.ee_pose), ("qpos", step.qpos), ("qvel", step.qvel),
+        ("gripper", step.gripper),
     )
-
+    for name, value in fields:
+        col = cols[name]
+        if np.size(value) != col.stop - col.start:
+            raise ValueError(f"{name} has {np.size(value)} numbers, the episode layout needs {col.stop - col.start}")
+        row[col] = np.ravel(value)

@@ -1,9 +1,11 @@
 """EpisodeWriter: cheap append on the control thread, encoding and IO on a writer thread.
 
-The control loop only packs a step into one float64 row and pushes it on a deque
-(a few microseconds). A daemon thread drains the deque every FLUSH_PERIOD
-seconds, encodes the rows into every format and flushes the files to the OS, so
-a kill -9 loses at most about FLUSH_PERIOD plus one batch's write time.
+The control loop writes each step straight into the next row of a preallocated
+block (`claim`, fill in place, `commit`: no temporaries, one copy per field), or
+hands a StepRecord to `append`, which does the same. A daemon thread copies the
+committed rows out every FLUSH_PERIOD seconds, encodes them into every format and
+flushes the files to the OS, so a kill -9 loses at most about FLUSH_PERIOD plus
+one batch's write time.
 An episode left open at interpreter exit (Ctrl-C, an exception) is closed as
 incomplete by an atexit hook, so what was recorded is kept.
 """
@@ -16,7 +18,6 @@ import re
 import threading
 import time
 import weakref
-from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,12 +25,13 @@ import numpy as np
 
 from recorder.hdf5_sink import Hdf5Sink
 from recorder.mcap_sink import McapSink
-from recorder.step import StepRecord, pack
+from recorder.step import StepRecord, pack_into
 from replay import schema
 
 FORMATS = ("mcap", "hdf5")
 SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
 FLUSH_PERIOD = 0.05  # s; a kill -9 loses about this plus one batch's encoding (0.25 s promised)
+BLOCK_ROWS = 256  # rows preallocated at a time (~10 s at 25 Hz); drained blocks are let go
 _EPISODE_RE = re.compile(r"^episode_(\d+)\.(mcap|hdf5)$")
 _open_writers: "weakref.WeakSet[EpisodeWriter]" = weakref.WeakSet()
 
@@ -90,6 +92,7 @@ class EpisodeWriter:
         meta["step_layout"] = layout
         self.meta = meta
         self._width = schema.row_width(layout)
+        self.columns = schema.slices(layout)  # where each field goes in a claimed row
         self._sinks: list[McapSink | Hdf5Sink] = []
         for fmt in formats:
             path = episode_path(self.directory, index, fmt)
@@ -105,9 +108,12 @@ class EpisodeWriter:
             except BaseException:
                 self._drop_files()
                 raise
-        self.steps = 0
+        self.steps = 0  # committed rows; the writer thread reads up to here
         self.cpu_seconds = 0.0  # writer-thread CPU spent encoding and writing, for benches
-        self._queue: deque[tuple[np.ndarray, list[dict]]] = deque()
+        self._blocks: list[np.ndarray | None] = [np.empty((BLOCK_ROWS, self._width))]
+        self._row = 0  # next row in the last block
+        self._commands: dict[int, list] = {}  # step -> its commands, for the (few) steps that have some
+        self._drained = 0  # rows the writer thread has taken
         self._stop = threading.Event()
         self._error: BaseException | None = None
         self._closed = False
@@ -119,18 +125,33 @@ class EpisodeWriter:
     def paths(self) -> list[Path]:
         return [s.path for s in self._sinks]
 
-    def append(self, step: StepRecord) -> None:
-        """Queue one step; encoding and IO happen on the writer thread."""
+    def claim(self) -> np.ndarray:
+        """The next step's row, a view to fill in place (fields at `self.columns`), then `commit`.
+
+        Until commit, the row is not recorded; claiming again returns the same row.
+        """
         if self._closed or self._error is not None:
             raise RecorderError(self._why_stopped())
+        if self._row == BLOCK_ROWS:
+            self._blocks.append(np.empty((BLOCK_ROWS, self._width)))
+            self._row = 0
+        return self._blocks[-1][self._row]
+
+    def commit(self, commands: list = ()) -> None:
+        """Record the claimed row, with the step's commands (dicts, or objects with to_dict())."""
+        if commands:
+            self._commands[self.steps] = list(commands)
+        self._row += 1
+        self.steps += 1  # last: the writer thread takes rows below this
+
+    def append(self, step: StepRecord) -> None:
+        """Record one step given as a StepRecord (arrays are copied; the caller may reuse them)."""
+        row = self.claim()
         try:
-            row = pack(step)
-        except ValueError as exc:  # an array of the wrong rank
+            pack_into(row, step, self.columns)
+        except ValueError as exc:  # a field of the wrong size or rank
             raise RecorderError(f"step does not fit the episode layout: {exc}") from None
-        if row.shape[0] != self._width:
-            raise RecorderError(f"step has {row.shape[0]} numbers, the episode layout needs {self._width}")
-        self._queue.append((row, step.commands))
-        self.steps += 1
+        self.commit(step.commands)
 
     def close(self, success: bool, complete: bool) -> list[Path]:
         """Write what is queued, mark success/complete, finish the files."""
@@ -182,13 +203,19 @@ class EpisodeWriter:
         self.cpu_seconds += time.thread_time() - t0
 
     def _drain(self) -> None:
-        q = self._queue
-        n = len(q)
-        if not n:
+        end, start = self.steps, self._drained
+        if end == start:
             return
-        items = [q.popleft() for _ in range(n)]
-        rows = np.stack([r for r, _ in items])
-        commands = [_commands_json(c) for _, c in items]  # encoded once for all sinks
+        parts = []
+        for i in range(start // BLOCK_ROWS, (end - 1) // BLOCK_ROWS + 1):
+            lo, hi = max(start, i * BLOCK_ROWS), min(end, (i + 1) * BLOCK_ROWS)
+            parts.append(self._blocks[i][lo - i * BLOCK_ROWS : hi - i * BLOCK_ROWS])
+            if hi == (i + 1) * BLOCK_ROWS:
+                self._blocks[i] = None  # full and taken: no longer needed (the copy below keeps the data)
+        rows = np.concatenate(parts)
+        pop = self._commands.pop
+        commands = [_commands_json(pop(k, ())) for k in range(start, end)]  # encoded once for all sinks
+        self._drained = end
         for sink in self._sinks:
             sink.write(rows, commands)
             sink.flush()

@@ -25,6 +25,7 @@ from scenes import RobotSpec, Scene, actuator_for_joint, build_scene, load_robot
 from scenes.arena import TABLE_TOP
 from teleop.command import Command
 from teleop.ik import ArmIK
+from teleop.record_row import RowFiller
 
 SCHEMA_VERSION = 1
 TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
@@ -243,15 +244,13 @@ class Session:
             self.handle_event(event)
 
         # The recorded state is taken before ctrl changes, so that state k+1 is
-        # exactly what stepping state k under ctrl k produces.
+        # exactly what stepping state k under ctrl k produces. It goes straight into
+        # the recorder's next row; the rest of the row is filled after the step.
         writer = self.writer
         if writer is not None:
             t_rec = time.perf_counter()
-            state_before = self._state()
-            # mjSTATE_INTEGRATION starts with time, qpos, qvel: views, no more copies.
-            nq, nv = self.model.nq, self.model.nv
-            qpos_before, qvel_before = state_before[1 : 1 + nq], state_before[1 + nq : 1 + nq + nv]
-            time_before = state_before[0]
+            row = writer.claim()
+            self._row_filler.capture_state(row, self.data)
             self.record_seconds += time.perf_counter() - t_rec
 
         ik_ok = True
@@ -275,35 +274,10 @@ class Session:
         self.steps += 1
         if writer is not None:
             t_rec = time.perf_counter()
-            writer.append(self._record(time_before, state_before, qpos_before, qvel_before, commands))
+            self._row_filler.finish(row, self.data, self.arms)
+            writer.commit(commands)  # Command objects: the writer thread turns them into dicts
             self.record_seconds += time.perf_counter() - t_rec
         return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
-
-    def _state(self) -> np.ndarray:
-        state = np.empty(self.nstate)
-        mujoco.mj_getState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
-        return state
-
-    def _record(self, t, state, qpos, qvel, commands):
-        """One StepRecord, built cheaply: this runs on the control thread every tick."""
-        from recorder import StepRecord
-
-        n = len(self.arms)
-        ee_target = np.empty((n, 7))
-        ee_pose = np.empty((n, 7))
-        gripper = np.empty(n)
-        for i, a in enumerate(self.arms):
-            ee_target[i, :3] = a.target_pos
-            ee_target[i, 3:] = a.target_quat
-            ee_pose[i, :3] = self.data.site_xpos[a.site_id]
-            mujoco.mju_mat2Quat(ee_pose[i, 3:], self.data.site_xmat[a.site_id])
-            gripper[i] = 1.0 if a.gripper_open else 0.0
-        # Arrays may be views (append copies them into one row at once); Command objects go
-        # as they are: the writer thread turns them into dicts.
-        return StepRecord(
-            time=float(t), state=state, ctrl=self.data.ctrl, ee_target=ee_target, ee_pose=ee_pose,
-            qpos=qpos, qvel=qvel, gripper=gripper, commands=list(commands), wall_time=time.time(),
-        )
 
     # --- recording -----------------------------------------------------------
 
@@ -376,6 +350,7 @@ class Session:
         self.record.directory.mkdir(parents=True, exist_ok=True)
         index = next_episode_index(self.record.directory)
         self.writer = EpisodeWriter(self.record.directory, index, self.record.formats, self.metadata(index))
+        self._row_filler = RowFiller(self.writer.columns, self.model, len(self.arms))
         self.tracking_errors.clear()
         self.steps = 0
 

@@ -128,6 +128,49 @@ def test_hdf5_robomimic_layout(recorded):
         assert bool(demo.attrs["closed"])
 
 
+def test_rows_across_buffer_blocks_and_bad_steps_record_nothing(tmp_path):
+    """More steps than one preallocated block; a step that does not fit leaves no row behind."""
+    from recorder.writer import BLOCK_ROWS
+
+    xml = pusher_xml()
+    model = mujoco.MjModel.from_xml_string(xml)
+    meta = episode_meta(model, xml, 0, 0, 5)
+    n = 2 * BLOCK_ROWS + 37
+    rng = np.random.default_rng(1)
+    states = rng.standard_normal((n, meta["nstate"]))
+    writer = EpisodeWriter(tmp_path, 0, ["mcap", "hdf5"], meta)
+    for k in range(n):
+        if k == 5:  # one number where a whole field belongs: numpy would broadcast it
+            bad = StepRecord(time=0.0, state=np.zeros(1), ctrl=np.zeros(model.nu), ee_target=np.zeros((1, 7)),
+                             ee_pose=np.zeros((1, 7)), qpos=np.zeros(model.nq), qvel=np.zeros(model.nv),
+                             gripper=np.ones(1))
+            with pytest.raises(RecorderError, match="state has 1 numbers"):
+                writer.append(bad)
+        row = writer.claim()  # the session's way: fill the row in place, then commit
+        cols = writer.columns
+        row[cols["time"]] = k * 0.05
+        row[cols["wall_time"]] = 1000.0 + k
+        row[cols["state"]] = states[k]
+        row[cols["ctrl"]] = [k, -k]
+        row[cols["ee_target"]] = k
+        row[cols["ee_pose"]] = -k
+        row[cols["qpos"]] = states[k, 1 : 1 + model.nq]
+        row[cols["qvel"]] = states[k, 1 + model.nq : 1 + model.nq + model.nv]
+        row[cols["gripper"]] = k % 2
+        writer.commit([{"step": k}] if k % 100 == 0 else [])
+        if k == 300:
+            time.sleep(0.2)  # let the writer thread drain part of a block mid-way
+    paths = writer.close(success=True, complete=True)
+    for path in paths:
+        ep = load_episode(path)
+        assert ep.steps == n, path
+        assert np.array_equal(ep.state, states)
+        assert np.array_equal(ep.ctrl[:, 0], np.arange(n)) and np.array_equal(ep.wall_time, 1000.0 + np.arange(n))
+        assert np.all(ep.ee_pose[:, 0, :] == -np.arange(n)[:, None])
+        assert [k for k, c in enumerate(ep.commands) if c] == list(range(0, n, 100))
+        assert ep.commands[200] == [{"step": 200}]
+
+
 def test_lifecycle_and_next_index(tmp_path):
     assert next_episode_index(tmp_path / "nowhere") == 0
     assert next_episode_index(tmp_path) == 0

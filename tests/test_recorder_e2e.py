@@ -32,3 +32,42 @@ def test_failed_episode_is_kept_and_marked(tmp_path: Path):
              "--record", str(tmp_path), "--format", "mcap", "--json")
     info = run_json("inspect", str(tmp_path / "episode_000000.mcap"), "--json")
     assert info["success"] is False and info["complete"] is True and info["steps"] == 15
+
+
+def test_session_rows_hold_what_each_tick_did(tmp_path: Path):
+    """The session fills the recorder's rows in place: each field is what that tick saw or did."""
+    import mujoco
+    import numpy as np
+
+    from recorder.writer import BLOCK_ROWS
+    from replay import load_episode
+    from teleop.command import Command
+    from teleop.session import RecordOptions, Session
+
+    session = Session("lift", "panda", seed=2, control_hz=30, record=RecordOptions(tmp_path, ("mcap", "hdf5"), verify=False))
+    session.start_episode()
+    site = session.arms[0].site_id
+    steps = BLOCK_ROWS + 40
+    poses, targets, ctrls = [], [], []
+    for k in range(steps):
+        cmds = [Command(translation=np.array([0.0, 0.002 * np.sin(k / 9), 0.0]), source="test")] if k % 3 == 0 else []
+        if k == 100:
+            cmds.append(Command(gripper="close", source="test"))
+        session.step(cmds)
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, session.data.site_xmat[site])
+        poses.append(np.concatenate([session.data.site_xpos[site], quat]))
+        targets.append(np.concatenate(session.target_pose(0)))
+        ctrls.append(session.data.ctrl.copy())
+    paths = session.save_episode()
+    nq, nv = session.model.nq, session.model.nv
+    for path in paths:
+        ep = load_episode(path)
+        assert ep.steps == steps
+        assert np.array_equal(ep.ee_pose[:, 0], np.array(poses)) and np.array_equal(ep.ee_target[:, 0], np.array(targets))
+        assert np.array_equal(ep.ctrl, np.array(ctrls))
+        assert np.array_equal(ep.time, ep.state[:, 0]) and np.array_equal(ep.qpos, ep.state[:, 1 : 1 + nq])
+        assert np.array_equal(ep.qvel, ep.state[:, 1 + nq : 1 + nq + nv])
+        assert np.all(np.diff(ep.time) > 0)
+        assert ep.gripper[99, 0] == 1.0 and ep.gripper[100, 0] == 0.0
+        assert [k for k, c in enumerate(ep.commands) if c] == sorted({*range(0, steps, 3), 100})
