@@ -1,7 +1,8 @@
 """Recording demonstrations: one episode per file, MCAP (live, Foxglove) and/or HDF5 (robomimic).
 
-The control thread calls `EpisodeWriter.append(StepRecord)` (a row copy and a
-deque push); a writer thread encodes and flushes every 0.05 s. The file layout is
+The control thread fills the writer's next preallocated row in place
+(`EpisodeWriter.claim` / `commit`), or hands it a `StepRecord` (`append`); a
+writer thread encodes and flushes every 0.05 s. The file layout is
 documented in `replay.schema`, which readers share. `recover_mcap` and
 `convert_episode` rewrite files for `teleop inspect --recover` / `teleop convert`.
 """

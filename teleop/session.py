@@ -110,7 +110,7 @@ class Session:
         self.saved_paths: list[Path] = []
         self.last_verify = None
         self.ik_failures = 0
-        self.record_seconds = 0.0  # control-thread time spent recording (state capture, packing, queueing)
+        self.record_seconds = 0.0  # control-thread time spent recording (state capture, filling the row, commit)
         self.clamped = 0
         self.ignored_commands = 0
         self.messages: list[str] = []
