@@ -88,7 +88,7 @@ def measure(quick: bool) -> dict[str, float]:
 def _measure(quick: bool) -> dict[str, float]:
     from teleop.cli_export import quiet_environment
 
-    quiet_environment()  # as `teleop export`: no banners or extra progress bars, renderer threads
+    quiet_environment()  # as `teleop export`: no encoder banners or extra progress bars
     from replay.export import _lerobot
     from replay.render import DEFAULTS, TUNED
 

@@ -47,16 +47,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def quiet_environment() -> None:
-    """Before LeRobot and OpenGL load: export is local (never wait on the Hub), ours is the one
-    progress bar, and a CPU renderer leaves the cores to the video encoders."""
+    """Before LeRobot loads: export is local (never wait on the Hub), and ours is the one progress bar."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("HF_DATASETS_DISABLE_PROGRESS_BARS", "1")
     # ...which `datasets` then warns about each time LeRobot opens a dataset to append to.
     warnings.filterwarnings("ignore", message="Cannot enable progress bars", category=UserWarning)
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 encoder: errors only, no banner per video
-    # Mesa llvmpipe (no GPU) rasterizes a 224x224 image in the calling thread at the same speed
-    # as with its worker threads, for ~10% less CPU: the encoders run on the other cores.
-    os.environ.setdefault("LP_NUM_THREADS", "0")
 
 
 def cmd_export(args: argparse.Namespace) -> int:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from replay import load_episode, replay_states
 from replay.export_frames import feature_key
-from replay.render import DEFAULTS, FastRenderer, RenderError, tune_model
+from replay.render import DEFAULTS, TUNED, FastRenderer, RenderError, tune_model
 from tests.conftest import ROOT, run_json
 
 PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
@@ -28,6 +30,9 @@ def test_tuning_works_on_a_copy(episode):
     assert (tuned.vis.quality.shadowsize, tuned.vis.quality.offsamples) == (0, 0)
     assert (tuned.vis.global_.offwidth, tuned.vis.global_.offheight) == (96, 64)
     assert not tuned.light_castshadow.any() and not tuned.mat_reflectance.any()
+    assert (tuned.vis.quality.numslices, tuned.vis.quality.numstacks) == (12, 7)  # few facets for a small image
+    big = tune_model(model, 640, 480).vis.quality
+    assert (big.numslices, big.numstacks, big.numquads) == (28, 16, model.vis.quality.numquads)
     floor = model.geom("floor").id
     assert model.geom_size[floor, 0] == 0 and tuned.geom_size[floor, 0] > 5  # infinite floor made finite
     after = (model.vis.quality.shadowsize, model.vis.quality.offsamples, model.vis.global_.offwidth,
@@ -55,6 +60,20 @@ def test_tuned_images_frame_the_scene_and_match_mujocos_look(episode):
         for i, name in enumerate(cams):
             moved = np.abs(frames[0][0][i].astype(int) - frames[episode.steps - 1][0][i].astype(int)).mean()
             assert moved > 1, f"{name} shows no motion over the episode"
+
+
+def test_fitted_tessellation_changes_only_edge_pixels(episode):
+    """At 224x224 the coarser round primitives are not visible: a few edge pixels move."""
+    model = episode.build_model()
+    cams = ["front", "overhead", "wrist"]
+    full = replace(TUNED, fit_tessellation=False)
+    with FastRenderer(model, 224, 224, cams) as fitted, FastRenderer(model, 224, 224, cams, settings=full) as fine:
+        for k, data in replay_states(episode, model):
+            if k % 20:
+                continue
+            for name, a, b in zip(cams, fitted.render_all(data), fine.render_all(data)):
+                diff = np.abs(a.astype(int) - b.astype(int))
+                assert diff.mean() < 1.5 and (diff.max(axis=2) > 30).mean() < 0.01, f"{name} at step {k}"
 
 
 def test_unknown_camera_names_the_cameras(episode):
