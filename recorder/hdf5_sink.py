@@ -6,9 +6,11 @@ Here `states` is the full mjSTATE_INTEGRATION vector (not robosuite's
 [time, qpos, qvel], which cannot replay exactly) and `actions` is ctrl. The extra
 datasets (ctrl, time, wall_time, ee_target, ee_pose, gripper, commands) and the
 `teleop_meta` JSON attr carry what exact replay and inspection need.
-Rows are written every WRITE_PERIOD seconds, then `num_samples`/`total` are
-updated and the file flushed, so a file whose writer died still says how many
-rows are whole (MCAP is the live format with the tighter loss bound).
+Rows are written every WRITE_PERIOD seconds (ALONGSIDE_MCAP_PERIOD when an MCAP
+file records the same episode: that one is the live format with the tight loss
+bound, and each HDF5 write holds the GIL for about a millisecond), then
+`num_samples`/`total` are updated and the file flushed, so a file whose writer
+died still says how many rows are whole.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from replay import schema
 DEMO = "data/demo_0"
 _CHUNK_ROWS = 256
 WRITE_PERIOD = 0.5  # s between HDF5 writes; a crash loses at most about this much
+ALONGSIDE_MCAP_PERIOD = 2.0  # s between writes when MCAP records the episode too
 
 
 class Hdf5Sink:
@@ -32,8 +35,9 @@ class Hdf5Sink:
 
     format = "hdf5"
 
-    def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]]):
+    def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], write_period: float = WRITE_PERIOD):
         self.path = path
+        self.write_period = write_period
         self._cols = schema.slices(layout)
         self._n_arms = schema.n_arms_of(meta)
         self._n = 0
@@ -109,9 +113,9 @@ class Hdf5Sink:
         """Write queued rows, publish the row count, push HDF5's buffers to the OS.
 
         Each write costs ~1 ms whatever its size, so it happens at most every
-        WRITE_PERIOD seconds unless forced (the MCAP file is the live one).
+        `write_period` seconds unless forced.
         """
-        if not self._pending or (not force and time.monotonic() - self._last_write < WRITE_PERIOD):
+        if not self._pending or (not force and time.monotonic() - self._last_write < self.write_period):
             return
         rows = np.concatenate([r for r, _ in self._pending])
         commands = [c for _, cs in self._pending for c in cs]

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recorder.hdf5_sink import Hdf5Sink
+from recorder.hdf5_sink import ALONGSIDE_MCAP_PERIOD, WRITE_PERIOD, Hdf5Sink
 from recorder.mcap_sink import McapSink
 from recorder.step import StepRecord, pack_into
 from replay import schema
@@ -101,7 +101,11 @@ class EpisodeWriter:
         for fmt in formats:
             path = episode_path(self.directory, index, fmt)
             try:
-                self._sinks.append((McapSink if fmt == "mcap" else Hdf5Sink)(path, meta, layout))
+                if fmt == "mcap":
+                    self._sinks.append(McapSink(path, meta, layout))
+                else:
+                    period = ALONGSIDE_MCAP_PERIOD if "mcap" in formats else WRITE_PERIOD
+                    self._sinks.append(Hdf5Sink(path, meta, layout, write_period=period))
             except FileExistsError:
                 self._drop_files()
                 raise RecorderError(f"{path}: episode file already exists") from None
