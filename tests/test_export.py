@@ -192,7 +192,7 @@ def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tm
     export_dataset(recorded["files"][1:2], ExportOptions(**opts, append=True))
     ds = _open(out, "test/av1")
     assert ds.num_episodes == 2 and _codec(out, "test/av1") == "av1"
-    first, last = ds[0]["observation.images.front"], ds[ds.num_frames - 1]["observation.images.front"]
+    first, last = ds[0]["observation.images.front"].numpy(), ds[ds.num_frames - 1]["observation.images.front"].numpy()
     assert first.std() > 0.05 and last.std() > 0.05 and np.abs(first - last).mean() > 0.02
 
     with pytest.raises(ExportError, match="--vcodec 'vp9'"):
