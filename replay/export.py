@@ -34,7 +34,7 @@ DEFAULT_CAMERAS = ("front", "wrist")
 
 # Video codecs, as LeRobot's RGBEncoderConfig settings. Measured on rendered 224x224 frames
 # (GOP 2, as LeRobot sets): H.264 veryfast at CRF 20 gives AV1's PSNR (within 0.4 dB) at
-# 1.1x its size, encodes in ~1 ms a frame instead of ~4.5 and decodes twice as fast when
+# 1.1-1.2x its size, encodes in ~1 ms a frame instead of ~4.5 and decodes twice as fast when
 # training reads it back. AV1 (LeRobot's own default) stays one flag away for the smallest files.
 VIDEO_CODECS: dict[str, dict] = {
     "h264": {"vcodec": "h264", "preset": "veryfast", "crf": 20},
