@@ -2,11 +2,12 @@
 
 Figures (`measure`), on real recordings (lift, Panda, 30 Hz, the scripted pick):
   render_fps            frames/s per camera at 224x224 with the export's tuned renderer
-                        (no shadows, no MSAA, no reflections, finite floor, buffer = image);
+                        (no shadows, no MSAA, no reflections, finite floor, buffer = image,
+                        round primitives with facets for the image size);
                         includes mj_setState + mj_forward per frame; per camera the best
                         of 3 passes over the episode, then the median over front, overhead, wrist
   render_fps_default    the same with MuJoCo's own settings (shadows, 4x MSAA, reflections,
-                        infinite floor, the model's 640x480 buffer), for comparison
+                        infinite floor, the model's 640x480 buffer, 28x16 facets), for comparison
   export_frames_per_s   `teleop export` end to end (replay, rendering front + wrist at
                         224x224, LeRobot add_frame/save_episode, H.264 video encoding (the
                         default codec), finalize) in dataset frames per second of wall time,

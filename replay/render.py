@@ -3,7 +3,8 @@
 Export renders every recorded state from one or more cameras, so the renderer
 must be fast on a CPU (Mesa llvmpipe) as well as on a GPU. MuJoCo's defaults
 (shadow maps, 4x MSAA, a 640x480 buffer, floor reflections, an infinite floor
-drawn as a 200x200 quad grid) cost ~10x over what a small training image needs.
+drawn as a 200x200 quad grid, capsules of 28x16 facets) cost ~40x over what a
+small training image needs.
 `tune_model` turns those off on a *copy* of the model, never on the one the
 caller simulates with, and `FastRenderer` drives MuJoCo's low-level mjr API
 with one reused GL context, scene and readback buffer.
