@@ -317,6 +317,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         raise ExportError(f"--action {opts.action!r}: choose one of {', '.join(ACTION_MODES)}")
     if opts.vcodec is not None and opts.vcodec not in VIDEO_CODECS:
         raise ExportError(f"--vcodec {opts.vcodec!r}: choose one of {', '.join(VIDEO_CODECS)}")
+    if opts.vcodec is not None and not opts.video:
+        raise ExportError("--vcodec chooses the video codec; with --no-video there is no video to encode")
     if not opts.repo_id or not opts.repo_id.strip():
         raise ExportError("--repo-id must not be empty")
     if opts.out.exists() and not opts.append:

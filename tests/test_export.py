@@ -197,6 +197,10 @@ def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tm
 
     with pytest.raises(ExportError, match="--vcodec 'vp9'"):
         export_dataset(recorded["files"][:1], ExportOptions(**{**opts, "out": tmp_path / "vp9"}, vcodec="vp9"))
+    result = run_cli("export", str(recorded["files"][0]), "--out", str(tmp_path / "png"), "--repo-id", "test/png",
+                     "--no-video", "--vcodec", "h264")
+    assert_one_line_error(result, "--vcodec", "--no-video")
+    assert not (tmp_path / "png").exists()
 
 
 def test_ee_actions_and_images_without_video(recorded, tmp_path):
