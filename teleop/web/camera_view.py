@@ -16,6 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from teleop.web.loop_thread import LoopThread
+
 IMAGE_SIZE = (192, 144)  # width, height
 FRAME_HZ = 4.0
 _GL_PROBLEM: str | None = None  # set once GL failed in this process: a second try can hang (GLFW)
@@ -28,8 +30,10 @@ def warm_up() -> None:
     start_probe()
 
 
-class CameraFeed:
+class CameraFeed(LoopThread):
     """Renders `camera()` from the latest snapshot into `show(image)` at `hz`."""
+
+    join_timeout = 3.0
 
     def __init__(
         self,
@@ -53,16 +57,7 @@ class CameraFeed:
         self.frames = 0
         self.problem: str | None = None
         self.ready = threading.Event()  # set once the renderer exists (or failed)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="teleop-camera", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(3.0)
+        self._init_thread("teleop-camera")
 
     def _open(self, model):
         """A renderer for `model`'s cameras; None (after `fail`) if there is no GL here."""

@@ -23,6 +23,7 @@ import trimesh
 import viser
 from mjviser import ViserMujocoScene
 
+from teleop.web.loop_thread import LoopThread
 from teleop.web.sim_thread import SimThread, Snapshot
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
@@ -39,7 +40,7 @@ def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
     return abs(abs(float(np.dot(a, b))) - 1.0) < 1e-8
 
 
-class SceneDrawer:
+class SceneDrawer(LoopThread):
     """Pushes the simulation's poses to every browser, up to `max_hz` updates a second."""
 
     def __init__(self, server: viser.ViserServer, sim: SimThread, gizmo=None, max_hz: float = 60.0) -> None:
@@ -54,8 +55,7 @@ class SceneDrawer:
         self.latency_ms: float | None = None
         self._last_input = 0.0
         self._last_tick = -1
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="teleop-draw", daemon=True)
+        self._init_thread("teleop-draw")
         self._update_lock = threading.Lock()
         snap = sim.snapshot
         self._generation = snap.generation
@@ -102,14 +102,6 @@ class SceneDrawer:
         return handle
 
     # -- thread ----------------------------------------------------------
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(2.0)
-
     def _run(self) -> None:
         next_frame = time.perf_counter()
         while not self._stop.is_set():

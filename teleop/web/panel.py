@@ -10,13 +10,13 @@ and only sent to browsers when it changed.
 from __future__ import annotations
 
 import collections
-import threading
 import time
 
 import numpy as np
 import viser
 
 from teleop.command import Command
+from teleop.web.loop_thread import LoopThread
 
 REFRESH_HZ = 4.0
 POS_SPEED_RANGE = (0.01, 0.5)  # m/s
@@ -61,7 +61,7 @@ def _fmt(value: float | None, unit: str, digits: int = 1) -> str:
     return "–" if value is None else f"{value:.{digits}f} {unit}"
 
 
-class Panel:
+class Panel(LoopThread):
     """Builds the GUI on `server` and keeps its figures current."""
 
     def __init__(
@@ -77,8 +77,7 @@ class Panel:
         self.device: PanelDevice = app.panel_device
         self._label_hold_until = 0.0
         self._texts: dict[str, str] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="teleop-panel", daemon=True)
+        self._init_thread("teleop-panel")
         gui = server.gui
         snap = app.sim.snapshot
         recording_on = app.session.record is not None
@@ -227,14 +226,6 @@ class Panel:
                 self.record_btn.label = label
 
     # -- thread ----------------------------------------------------------
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(2.0)
-
     def _run(self) -> None:
         while not self._stop.wait(1.0 / REFRESH_HZ):
             try:

@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 
 from teleop.session import Session
+from teleop.web.loop_thread import LoopThread
 
 MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 RATE_WINDOW_S = 1.0
@@ -59,8 +60,10 @@ class Snapshot:
     published: float = field(default_factory=time.monotonic)
 
 
-class SimThread:
+class SimThread(LoopThread):
     """Runs `session.step` at `session.control_hz` in real time until stopped."""
+
+    join_timeout = 5.0
 
     def __init__(self, session: Session, devices: list, log: Callable[[str], None] = print) -> None:
         self.session = session
@@ -69,8 +72,7 @@ class SimThread:
         self.lock = threading.Lock()
         self.device_problems: dict[str, str] = {}
         self._actions: queue.SimpleQueue[Callable[[Session], None]] = queue.SimpleQueue()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="teleop-sim", daemon=True)
+        self._init_thread("teleop-sim")
         self._generation = 0
         self._model = session.model
         self._ticks = 0
@@ -90,11 +92,6 @@ class SimThread:
     def start(self) -> None:
         self.wall_started = time.monotonic()
         self._thread.start()
-
-    def stop(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout)
 
     @property
     def alive(self) -> bool:
