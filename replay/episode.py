@@ -16,6 +16,7 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata
 
 from replay import schema
+from replay.errors import first_line
 from replay.mcap_read import McapScan, iter_records
 
 EPISODE_SUFFIXES = (".mcap", ".hdf5", ".h5")
@@ -67,7 +68,7 @@ class Episode:
         try:
             model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.get("assets") or {}))
         except Exception as exc:  # noqa: BLE001 - mujoco raises ValueError/Exception variants
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = first_line(exc)
             raise EpisodeError(f"{self.path}: recorded model XML does not compile: {first}") from None
         timestep = self.meta.get("timestep")
         if timestep:
@@ -252,7 +253,7 @@ def _load_hdf5(path: Path) -> Episode:
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        first = str(exc).splitlines()[0] if str(exc) else "unreadable"
+        first = first_line(exc, "unreadable")
         raise EpisodeError(f"{path}: cannot open as HDF5 (truncated or corrupt?): {first}") from None
     with f:
         if DEMO not in f:

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from replay.engine import replay_states
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
+from replay.errors import first_line
 from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, robot_layout
 from replay.render import FastRenderer, RenderError, warm_up
 
@@ -248,7 +249,7 @@ def _encoder(settings: dict):
     try:
         return RGBEncoderConfig(**settings)
     except (ValueError, ImportError) as exc:
-        raise ExportError(f"video codec {settings['vcodec']}: {str(exc).strip().splitlines()[0]}") from None
+        raise ExportError(f"video codec {settings['vcodec']}: {first_line(exc)}") from None
 
 
 def _dataset_encoder(meta, wanted: str | None, out: Path):
@@ -265,7 +266,7 @@ def _dataset_encoder(meta, wanted: str | None, out: Path):
     try:
         return encoder_config_from_video_info(infos[0])
     except (ValueError, ImportError) as exc:
-        raise ExportError(f"--append: cannot encode {out}'s video codec {stream}: {str(exc).strip().splitlines()[0]}") from None
+        raise ExportError(f"--append: cannot encode {out}'s video codec {stream}: {first_line(exc)}") from None
 
 
 def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, robot_type: str, queue: int):
@@ -291,7 +292,7 @@ def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, rob
         except ExportError:
             raise
         except Exception as exc:  # noqa: BLE001 - LeRobot raises many kinds for a broken dataset
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = first_line(exc)
             raise ExportError(f"--append: cannot open {out} as a LeRobot dataset: {first}") from None
         return ds, False
     encoder = _encoder(VIDEO_CODECS[opts.vcodec or DEFAULT_CODEC]) if opts.video else None

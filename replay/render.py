@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from replay.errors import first_line
+
 BACKENDS = ("egl", "osmesa", "glfw")
 _chosen_backend: str | None = None
 
@@ -176,7 +178,7 @@ def _gl_context(backend: str, width: int, height: int):
         ctx = GLContext(width, height)
         ctx.make_current()
     except Exception as exc:  # noqa: BLE001 - GL stacks raise anything from ImportError to GLError
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = first_line(exc)
         raise RenderError(f"cannot create an OpenGL context with MUJOCO_GL={backend}: {first}") from None
     return ctx
 

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from replay.errors import first_line
 from teleop.errors import UsageError
 
 
@@ -81,7 +82,7 @@ def make_session(args: argparse.Namespace):
     except SceneError as exc:
         raise UsageError(str(exc)) from None
     except ValueError as exc:
-        raise UsageError(str(exc).splitlines()[0]) from None
+        raise UsageError(first_line(exc)) from None
 
 
 def open_session_devices(spec: str, args: argparse.Namespace, n_arms: int, log=print):

@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from replay.errors import first_line
 from teleop.web.loop_thread import LoopThread
 
 IMAGE_SIZE = (192, 144)  # width, height
@@ -70,7 +71,7 @@ class CameraFeed(LoopThread):
             except RenderError as exc:
                 _GL_PROBLEM = f"camera images are off: {exc}"
             except Exception as exc:  # noqa: BLE001 - any GL failure means "no pictures", not a crash
-                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                first = first_line(exc)
                 _GL_PROBLEM = (f"camera images are off: no OpenGL context ({first}); set MUJOCO_GL=egl "
                                "(Debian: libegl1 libgl1-mesa-dri) or MUJOCO_GL=osmesa (libosmesa6)")
         self.problem = _GL_PROBLEM

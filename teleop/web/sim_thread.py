@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from replay.errors import first_line
 from teleop.session import Session
 from teleop.web.loop_thread import LoopThread
 
@@ -191,7 +192,7 @@ class SimThread(LoopThread):
             try:
                 commands.extend(device.poll(session, session.dt))
             except Exception as exc:  # noqa: BLE001 - one broken device must not stop the others
-                self.device_problems[device.name] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                self.device_problems[device.name] = first_line(exc)
                 session.note(f"{device.name} stopped: {self.device_problems[device.name]}")
         # Devices that stamp their input (the browser gizmo) let the page show input-to-display latency.
         self._input_time = max([self._input_time, *(getattr(d, "last_input_time", 0.0) for d in self.devices)])
