@@ -97,11 +97,7 @@ class CameraFeed(LoopThread):
                         renderer.load(snap.model)
                         data = mujoco.MjData(snap.model)
                         generation = snap.generation
-                    data.qpos[:] = snap.qpos
-                    if snap.model.nmocap:
-                        data.mocap_pos[:] = snap.mocap_pos
-                        data.mocap_quat[:] = snap.mocap_quat
-                    mujoco.mj_kinematics(snap.model, data)
+                    snap.pose(data)
                     mujoco.mj_comPos(snap.model, data)
                     mujoco.mj_camlight(snap.model, data)
                     name = self.camera()

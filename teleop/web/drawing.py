@@ -126,12 +126,7 @@ class SceneDrawer(LoopThread):
             if snap.generation != self._generation:
                 self._rebuild(snap)
             start = time.perf_counter()
-            data = self.data
-            data.qpos[:] = snap.qpos
-            if self.model.nmocap:
-                data.mocap_pos[:] = snap.mocap_pos
-                data.mocap_quat[:] = snap.mocap_quat
-            mujoco.mj_kinematics(self.model, data)
+            snap.pose(self.data)
             self._last_tick = snap.tick
             self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target
             if not self._moved(snap):
@@ -141,7 +136,7 @@ class SceneDrawer(LoopThread):
             # messages yet and then waits a window out (~23 instead of 60 windows/s): so no outer
             # atomic block here, and a flush again once the block is closed.
             self._draw_markers(snap)
-            self.scene.update_from_mjdata(data)
+            self.scene.update_from_mjdata(self.data)
             self.server.flush()
             cost = time.perf_counter() - start
             self.update_s.append(cost)

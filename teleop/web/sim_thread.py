@@ -60,6 +60,14 @@ class Snapshot:
     input_time: float  # time.monotonic() when the newest applied device input arrived (0: none yet)
     published: float = field(default_factory=time.monotonic)
 
+    def pose(self, data: mujoco.MjData) -> None:
+        """Put this tick's poses into `data` (an MjData of `self.model` owned by the caller)."""
+        data.qpos[:] = self.qpos
+        if self.model.nmocap:
+            data.mocap_pos[:] = self.mocap_pos
+            data.mocap_quat[:] = self.mocap_quat
+        mujoco.mj_kinematics(self.model, data)
+
 
 class SimThread(LoopThread):
     """Runs `session.step` at `session.control_hz` in real time until stopped."""
