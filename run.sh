@@ -61,6 +61,17 @@ debian_test_packages() {
     fi
 }
 
+robomimic_for_tests() {
+    # tests/test_robomimic.py opens our HDF5 files with robomimic's own SequenceDataset. Installed
+    # without its dependencies (tensorboard, matplotlib, egl_probe...: for its training and rendering):
+    # its loader needs torch, h5py and numpy, which the lerobot extra brings, and these three.
+    if ! "$VENV/bin/python" -c 'import importlib.metadata as m, sys; [m.version(d) for d in ("termcolor", "tensorboardX", "tqdm")]; sys.exit(m.version("robomimic") != "0.3.0")' 2>/dev/null; then
+        echo "run.sh: installing robomimic 0.3.0 (without its dependencies) into $VENV..." >&2
+        "$VENV/bin/python" -m pip install -q termcolor tensorboardX tqdm
+        "$VENV/bin/python" -m pip install -q --no-deps robomimic==0.3.0
+    fi
+}
+
 first=${1:-serve}
 case "$first" in -*) first=serve; set -- serve "$@" ;; esac
 case "$first" in
@@ -68,6 +79,7 @@ case "$first" in
         shift || true
         debian_test_packages
         make_venv "test,lerobot"
+        robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
         set +e
         "$VENV/bin/python" -m pytest "$@"

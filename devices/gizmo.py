@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from teleop.command import Command
-from teleop.view import SessionView
+from devices.command import Command
+from devices.view import SessionView
 
 SETTLE_S = 0.3  # after a drag ends, the gizmo stays where the mouse left it this long
 

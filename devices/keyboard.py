@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from devices.base import DeviceError
-from teleop.command import Command
-from teleop.view import SessionView
+from devices.command import Command
+from devices.view import SessionView
 
 SPEED_STEP = 1.5  # factor per speed-up / speed-down press
 SPEED_LIMITS = (0.1, 10.0)

@@ -24,13 +24,14 @@ import mujoco
 import numpy as np
 
 from devices.base import DeviceError
-from teleop.command import Command
-from teleop.view import SessionView
+from devices.command import Command
+from devices.view import SessionView
+from scenes.errors import TeleopError
 
 STEP_KEYS = {"duration", "move", "rotate", "to", "to_body", "offset", "gripper", "arm"}
 
 
-class ScriptError(ValueError):
+class ScriptError(TeleopError, ValueError):
     """A malformed script; the message names the file, step and field."""
 
 
@@ -135,17 +136,17 @@ class ScriptDevice:
     kind = "script"
 
     def __init__(self, path: str | Path):
+        """Read and check the script now: a malformed one raises ScriptError naming the step and field."""
         self.path = Path(path)
         self.name = f"script:{self.path.name}"
-        self.steps: list[ScriptStep] = []
+        self.steps: list[ScriptStep] = load_script(self.path)
         self.index = 0
         self.elapsed = 0.0
         self._start: tuple[np.ndarray, np.ndarray] | None = None
         self._goal: tuple[np.ndarray, np.ndarray] | None = None
 
     def start(self) -> None:
-        """Parse the script; a malformed script is an error the caller must not ignore."""
-        self.steps = load_script(self.path)
+        """Play from the first step."""
         self.restart()
 
     def restart(self) -> None:

@@ -21,8 +21,8 @@ import numpy as np
 
 from devices.base import DeviceError
 from devices.spacemouse_protocol import RawState, apply_report, is_spacemouse, model_name, normalize, to_world
-from teleop.command import EVENTS, Command
-from teleop.view import SessionView
+from devices.command import EVENTS, Command
+from devices.view import SessionView
 
 UDEV_RULES = (
     'KERNEL=="hidraw*", ATTRS{idVendor}=="256f", MODE="0666"\n'

@@ -6,6 +6,12 @@ Here `states` is the full mjSTATE_INTEGRATION vector (not robosuite's
 [time, qpos, qvel], which cannot replay exactly) and `actions` is ctrl. The extra
 datasets (ctrl, time, wall_time, ee_target, ee_pose, gripper, commands) and the
 `teleop_meta` JSON attr carry what exact replay and inspection need.
+Each fact is stored once: `env_args` describes the environment only (ENV_KEYS);
+`teleop_meta` every other metadata key except the outcome; the outcome is the
+demo attrs `success`, `complete` (False until finish() writes the final values,
+and `closed` says it did) and `num_samples`. At finish the robomimic
+observation pairs are added: obs/ee_pose, obs/ee_target and next_obs/<key> for
+every obs key (timing in recorder.robomimic_obs), with attr `next_obs_final`.
 Rows are written every WRITE_PERIOD seconds (ALONGSIDE_MCAP_PERIOD when an MCAP
 file records the same episode: that one is the live format with the tight loss
 bound, and each HDF5 write holds the GIL for about a millisecond), then
@@ -22,12 +28,18 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from recorder.robomimic_obs import Recorded, obs_pairs
 from replay import schema
 
 DEMO = "data/demo_0"
 _CHUNK_ROWS = 256
 WRITE_PERIOD = 0.5  # s between HDF5 writes; a crash loses at most about this much
 ALONGSIDE_MCAP_PERIOD = 2.0  # s between writes when MCAP records the episode too
+# env_args.env_kwargs: what describes the environment, nothing about one episode's outcome or provenance.
+ENV_KEYS = ("scene", "robot", "robot_spec", "seed", "task", "cameras", "control_hz", "timestep", "substeps",
+            "nstate", "nq", "nv", "nu", "n_arms", "mujoco_version", "machine")
+ENV_TYPE = 0  # not one of robomimic's EnvType values: robomimic cannot rebuild this environment itself
+OUTCOME_KEYS = ("success", "complete", "steps")  # demo attrs success, complete, num_samples
 
 
 class Hdf5Sink:
@@ -55,16 +67,27 @@ class Hdf5Sink:
     def _setup(self, meta: dict) -> None:
         f = self._f
         data = f.create_group("data")
-        env_meta = {k: v for k, v in meta.items() if k not in schema.BINARY_META_KEYS}
-        data.attrs["env_args"] = json.dumps(
-            {"env_name": meta.get("scene", ""), "type": 0, "env_kwargs": env_meta, "source": "teleop"}
-        )
+        # Each fact is written once: the environment in env_args, provenance in
+        # teleop_meta, the outcome (success, complete, num_samples) as demo attrs
+        # that finish() sets to their final values.
+        env_kwargs = {k: meta[k] for k in ENV_KEYS if k in meta}
+        data.attrs["env_args"] = json.dumps({"env_name": meta.get("scene", ""), "type": ENV_TYPE, "env_kwargs": env_kwargs})
         data.attrs["total"] = 0
         data.attrs["date"] = str(meta.get("start_time", ""))
         demo = f.create_group(DEMO)
         demo.attrs["model_file"] = meta["model_xml"]
         demo.attrs["num_samples"] = 0
-        demo.attrs["teleop_meta"] = json.dumps(env_meta)
+        demo.attrs["teleop_meta"] = json.dumps(
+            {k: v for k, v in meta.items() if k not in schema.BINARY_META_KEYS and k not in OUTCOME_KEYS}
+        )
+        spec = meta.get("robot_spec") or {}
+        self._sim = {  # what finish() needs to build robomimic's next_obs (robomimic_obs.Recorded)
+            "model_xml": meta["model_xml"],
+            "assets": dict(meta.get("assets") or {}),
+            "timestep": float(meta.get("timestep") or 0.0),
+            "substeps": int(meta.get("substeps") or 1),
+            "ee_sites": [str(a.get("ee_site", "")) for a in spec.get("arms") or ()],
+        }
         for key in ("scene", "robot", "seed", "task", "mujoco_version", "schema_version"):
             if key in meta and meta[key] is not None:
                 demo.attrs[key] = meta[key]
@@ -145,16 +168,35 @@ class Hdf5Sink:
             rewards[-1] = 1.0 if success else 0.0
         demo.create_dataset("dones", data=dones)
         demo.create_dataset("rewards", data=rewards)
-        # Flat (T, n_arms*7) EE poses as robomimic low-dim observations.
-        for name in ("ee_pose", "ee_target"):
-            demo.create_dataset(f"obs/{name}", data=self._ds[name][: self._n].reshape(self._n, self._n_arms * 7))
-        meta = json.loads(demo.attrs["teleop_meta"])
-        meta.update(end_meta)
-        demo.attrs["teleop_meta"] = json.dumps(meta)
+        self._write_obs_pairs()
+        # The outcome lives in the demo attrs only; anything else the end adds is provenance.
+        extra = {k: v for k, v in end_meta.items() if k not in OUTCOME_KEYS}
+        if extra:
+            meta = json.loads(demo.attrs["teleop_meta"])
+            meta.update(extra)
+            demo.attrs["teleop_meta"] = json.dumps(meta)
         demo.attrs["success"] = success
         demo.attrs["complete"] = complete
         demo.attrs["closed"] = True
         self._f.close()
+
+    def _write_obs_pairs(self) -> None:
+        """obs/ee_pose, obs/ee_target and next_obs/<key> for every obs key (see recorder.robomimic_obs)."""
+        n, ds, demo = self._n, self._ds, self._demo
+        flat = {name: ds[name][:n].reshape(n, self._n_arms * 7) for name in ("ee_pose", "ee_target")}
+        last_two = sorted({max(n - 2, 0), n - 1}) if n else []  # h5py wants increasing, distinct rows
+        pairs = obs_pairs(Recorded(
+            **self._sim,
+            qpos=ds["obs/qpos"][:n], qvel=ds["obs/qvel"][:n], gripper=ds["obs/gripper"][:n],
+            ee_pose=flat["ee_pose"], ee_target=flat["ee_target"],
+            states=ds["states"][sorted({0, *last_two})] if n else ds["states"][:0],
+            actions=ds["actions"][last_two] if n else ds["actions"][:0],
+        ))
+        for name in ("ee_pose", "ee_target"):
+            demo.create_dataset(f"obs/{name}", data=pairs.obs[name])
+        for name, value in pairs.next_obs.items():
+            demo.create_dataset(f"next_obs/{name}", data=value)
+        demo.attrs["next_obs_final"] = pairs.final
 
     def abort(self) -> None:
         try:

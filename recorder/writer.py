@@ -27,6 +27,7 @@ from recorder.hdf5_sink import ALONGSIDE_MCAP_PERIOD, WRITE_PERIOD, Hdf5Sink
 from recorder.mcap_sink import McapSink
 from recorder.step import StepRecord, pack_into
 from replay import schema
+from scenes.errors import TeleopError
 
 FORMATS = ("mcap", "hdf5")
 SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
@@ -36,7 +37,7 @@ _EPISODE_RE = re.compile(r"^episode_(\d+)\.(mcap|hdf5)$")
 _open_writers: "weakref.WeakSet[EpisodeWriter]" = weakref.WeakSet()
 
 
-class RecorderError(RuntimeError):
+class RecorderError(TeleopError, RuntimeError):
     """Recording failed (bad step shape, disk full, ...); the message is one line."""
 
 

@@ -16,13 +16,13 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata
 
 from replay import schema
-from replay.errors import first_line
+from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
 
 EPISODE_SUFFIXES = (".mcap", ".hdf5", ".h5")
 
 
-class EpisodeError(ValueError):
+class EpisodeError(TeleopError, ValueError):
     """An episode file is missing, unreadable or inconsistent; the message is one line."""
 
 
@@ -274,8 +274,9 @@ def _load_hdf5(path: Path) -> Episode:
                 assets[_text(ds.attrs["name"])] = ds[()].tobytes()
         meta["assets"] = assets
         closed = bool(demo.attrs.get("closed", True))
-        if not closed:
-            meta["success"], meta["complete"] = False, False
+        # The outcome is the demo attrs (schema 1 files also copied it into teleop_meta at close).
+        for key in ("success", "complete"):
+            meta[key] = closed and bool(demo.attrs.get(key, meta.get(key, False)))
         layout = _layout(path, meta)
         sizes = dict(layout)
         for name in list(_HDF5_FIELDS.values()) + ["commands"]:
@@ -283,16 +284,19 @@ def _load_hdf5(path: Path) -> Episode:
                 raise EpisodeError(f"{path}: missing dataset {DEMO}/{name}")
         lengths = [demo[n].shape[0] for n in list(_HDF5_FIELDS.values()) + ["commands"]]
         n = min(lengths + [int(demo.attrs.get("num_samples", min(lengths)))])
+        if closed:
+            meta["steps"] = n
         try:
             parts = []
             for fld, size in layout:
-                arr = np.asarray(demo[_HDF5_FIELDS[fld]][:n], dtype=np.float64).reshape(n, -1)
-                if arr.shape[1] != size:
+                ds = demo[_HDF5_FIELDS[fld]]
+                width = int(np.prod(ds.shape[1:], dtype=np.int64))  # known without rows: 0-step episodes too
+                if width != size:
                     raise EpisodeError(
-                        f"{path}: dataset {DEMO}/{_HDF5_FIELDS[fld]} has {arr.shape[1]} values per step, "
+                        f"{path}: dataset {DEMO}/{_HDF5_FIELDS[fld]} has {width} values per step, "
                         f"the metadata says {sizes[fld]}"
                     )
-                parts.append(arr)
+                parts.append(np.asarray(ds[:n], dtype=np.float64).reshape(n, size))
             raw_cmds = demo["commands"][:n]
         except OSError as exc:
             raise EpisodeError(f"{path}: cannot read datasets (truncated or corrupt?): {exc}") from None

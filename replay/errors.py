@@ -1,9 +1,5 @@
-"""Turning an exception from a library into the one line a user is shown."""
+"""Turning an exception from a library into the one line a user is shown (defined with the root error)."""
 
-from __future__ import annotations
+from scenes.errors import TeleopError, first_line
 
-
-def first_line(exc: BaseException, default: str | None = None) -> str:
-    """The first non-empty line of `exc`'s message, else `default`, else its type name."""
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else (default or type(exc).__name__)
+__all__ = ["TeleopError", "first_line"]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from replay.engine import replay_states
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
-from replay.errors import first_line
+from replay.errors import TeleopError, first_line
 from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, robot_layout
 from replay.render import FastRenderer, RenderError, warm_up
 
@@ -45,7 +45,7 @@ VIDEO_CODECS: dict[str, dict] = {
 DEFAULT_CODEC = "h264"
 
 
-class ExportError(ValueError):
+class ExportError(TeleopError, ValueError):
     """Bad export input (files, flags, an existing dataset); the message is one line."""
 
 

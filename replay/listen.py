@@ -11,8 +11,10 @@ import errno
 import ipaddress
 import socket
 
+from scenes.errors import TeleopError
 
-class ListenError(ValueError):
+
+class ListenError(TeleopError, ValueError):
     """The host or port cannot be listened on; the message is one line naming which."""
 
 

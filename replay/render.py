@@ -22,13 +22,13 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from replay.errors import first_line
+from scenes.errors import TeleopError, first_line
 
 BACKENDS = ("egl", "osmesa", "glfw")
 _chosen_backend: str | None = None
 
 
-class RenderError(RuntimeError):
+class RenderError(TeleopError, RuntimeError):
     """No usable OpenGL backend, or a camera that is not in the model; one line."""
 
 

@@ -22,13 +22,14 @@ import numpy as np
 
 from replay.episode import Episode, EpisodeError
 from replay.listen import ListenError, check_port_free, is_loopback
+from scenes.errors import TeleopError
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
 CAMERA_POSITION = (1.45, -1.05, 0.95)
 CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 
 
-class ServeError(Exception):
+class ServeError(TeleopError):
     """The viewer cannot start (port taken, bad host, empty episode); one line for the user."""
 
 

@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 
 from scenes.arena import TABLE_TOP, Layout, make_arena, yaw_quat
+from scenes.errors import first_line
 from scenes.robot import ArmSpec, RobotSpec, SceneError, load_robot
 from scenes.tasks import TASKS, Task
 
@@ -76,12 +77,6 @@ def _layout(robot: RobotSpec) -> Layout:
                   table_half=(0.5 * reach + 0.35, 0.7 * reach + 0.1), table_center=(0.5 * reach - 0.1, 0.0), bimanual=False)
 
 
-def _first_line(exc: BaseException) -> str:
-    """MuJoCo's compile errors run to several lines; a user is shown the first."""
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
-
-
 def _inline_assets(spec: mujoco.MjSpec, base_dir: Path) -> dict[str, bytes]:
     """Read every file the robot's MJCF references into an assets dict.
 
@@ -122,7 +117,7 @@ def _load_robot_spec(robot: RobotSpec) -> tuple[mujoco.MjSpec, dict[str, bytes],
     try:
         spec = mujoco.MjSpec.from_file(str(robot.mjcf))
     except Exception as exc:  # mujoco raises ValueError with a multi-line message
-        first = _first_line(exc)
+        first = first_line(exc)
         raise SceneError(f"{robot.mjcf}: MJCF does not load: {first}") from None
     assets = _inline_assets(spec, robot.mjcf.parent)
     arms = robot.arms
@@ -149,7 +144,7 @@ def _prepare_user_arm(spec: mujoco.MjSpec, robot: RobotSpec, arm: ArmSpec) -> Ar
     try:
         probe = spec.copy().compile()
     except Exception as exc:
-        first = _first_line(exc)
+        first = first_line(exc)
         raise SceneError(f"{where}: MJCF does not compile: {first}") from None
     if mujoco.mj_name2id(probe, mujoco.mjtObj.mjOBJ_SITE, arm.ee_site) < 0:
         sites = [probe.site(i).name for i in range(probe.nsite)]
@@ -261,7 +256,7 @@ def build_scene(task: str | Task, robot: str | Path | RobotSpec, seed: int = 0, 
         xml = re.sub(r'(<option[^>]*?timestep=")[^"]*(")', rf"\g<1>{timestep!r}\g<2>", arena.to_xml(), count=1)
         model = mujoco.MjModel.from_xml_string(xml, assets)
     except Exception as exc:
-        first = _first_line(exc)
+        first = first_line(exc)
         raise SceneError(f"scene '{task.name}' with robot '{robot.name}' does not compile: {first}") from None
     cameras = tuple(model.camera(i).name for i in range(model.ncam))
     return Scene(task=task, robot=robot, arms=arms, seed=seed, xml=xml, assets=assets,

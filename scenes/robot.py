@@ -12,10 +12,12 @@ import tomllib
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from scenes.errors import TeleopError
+
 ROBOTS_DIR = Path(__file__).parent / "robots"
 
 
-class SceneError(ValueError):
+class SceneError(TeleopError, ValueError):
     """A robot or scene cannot be built; the message is one line naming the problem."""
 
 

@@ -1,17 +1,20 @@
 """`teleop` command line: one subcommand per job, each defined next to what it drives.
 
 Every user error ends as one line on stderr and exit code 2 (UsageError);
-tracebacks are for bugs only.
+tracebacks are for bugs only. With `--json`, stdout carries the one JSON object
+and nothing else (teleop/json_output.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 
 from teleop import cli_devices, cli_export, cli_record, cli_run, cli_serve
 from teleop.errors import UsageError
+from teleop.json_output import json_stdout
 
 MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export)
 
@@ -37,8 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     signal.signal(signal.SIGTERM, _terminate)
+    as_json = bool(getattr(args, "json", False))
     try:
-        return int(args.func(args) or 0)
+        with json_stdout() if as_json else contextlib.nullcontext():
+            return int(args.func(args) or 0)
     except UsageError as exc:
         print(f"teleop {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
+
+from teleop.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -14,7 +15,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description="List every input device teleop can see or not see, and why; then the keyboard "
         "bindings and the SpaceMouse setup.",
     )
-    p.add_argument("--json", action="store_true", help="print a JSON list of {name, kind, available, reason, ...}")
+    p.add_argument("--json", action="store_true", help='print one JSON object {"devices": [{name, kind, available, reason, ...}]}')
     p.set_defaults(func=run_devices)
 
 
@@ -45,7 +46,7 @@ def run_devices(args: argparse.Namespace) -> int:
 
     rows = discover()
     if args.json:
-        print(json.dumps([r.to_dict() for r in rows], indent=2))
+        print_json({"devices": [r.to_dict() for r in rows]}, indent=2)
         return 0
     width = max(len(r.name) for r in rows)
     print(f"{'NAME'.ljust(width)}  {'KIND':10}  {'AVAILABLE':9}  REASON")

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from teleop.errors import UsageError
+from teleop.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -56,7 +57,7 @@ def _load(path: Path):
 
 def _emit(obj: dict, as_json: bool) -> None:
     if as_json:
-        print(json.dumps(obj))
+        print_json(obj)
         return
     for key, value in obj.items():
         print(f"{key}: {json.dumps(value) if isinstance(value, (dict, list)) else value}")
@@ -95,7 +96,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UsageError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
     if args.json:
-        print(json.dumps(result))
+        print_json(result)
     else:
         print(f"converted {args.path} -> {args.out} ({args.to}, {result['steps']} steps)")
     return 0
@@ -142,7 +143,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         )
         code = 0 if (result.bit_exact or not args.verify) else 1
     if args.json:
-        print(json.dumps(out))
+        print_json(out)
     elif mode == "state":
         print(f"restored {episode.steps} recorded states in {out['wall_seconds']:.3f} s")
     elif out["bit_exact"]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import time
@@ -11,6 +10,7 @@ from pathlib import Path
 
 from replay.errors import first_line
 from teleop.errors import UsageError
+from teleop.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -198,7 +198,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if len(episodes) > 1:
         summary["per_episode"] = episodes
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         err = summary["ee_tracking_error_mm"]
         print(
@@ -224,12 +224,15 @@ def _merged_error(episodes: list[dict]) -> dict:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bench.run import run_all
+    from bench.run import MODULES, run_all
 
     only = [w.strip() for w in args.only.split(",")] if args.only else None
+    unknown = [w for w in only or () if w not in MODULES]
+    if unknown:
+        raise UsageError(f"--only {','.join(unknown)}: unknown bench (benches: {', '.join(MODULES)})")
     results = run_all(quick=args.quick, only=only, progress=not args.json)
     if args.json:
-        print(json.dumps(results))
+        print_json(results)
     else:
         for key, value in results.items():
             print(f"{key:<28} {value}")

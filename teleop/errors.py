@@ -1,5 +1,11 @@
-"""Errors that reach the user as one line and exit code 2."""
+"""Errors that reach the user as one line and exit code 2 (all are `TeleopError`s)."""
+
+from scenes.errors import TeleopError
 
 
-class UsageError(Exception):
-    """Bad input from the user: a file, a flag, a script. The message is the whole story."""
+class SessionError(TeleopError, ValueError):
+    """A session cannot be set up as asked (a control rate out of range, a recorder already attached)."""
+
+
+class UsageError(TeleopError):
+    """Bad command-line input: a flag, a file, a script. The message is the whole story."""

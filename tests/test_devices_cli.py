@@ -34,7 +34,7 @@ def env_for(display: str | None) -> dict:
 
 def rows_by_name(result: subprocess.CompletedProcess) -> dict[str, dict]:
     assert result.returncode == 0, result.stderr
-    rows = json.loads(result.stdout)
+    rows = json.loads(result.stdout)["devices"]
     assert isinstance(rows, list)
     for row in rows:
         assert {"name", "kind", "available", "reason"} <= set(row), row

@@ -1,0 +1,74 @@
+"""The one message every input device produces, and the session consumes.
+
+Units are explicit so that a device never has to guess what "one step" means:
+translations in metres, rotations in radians (axis-angle), both as deltas for
+this control tick, in the frame named by `frame`. A device may instead (or as
+well) give an absolute target pose in the world frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+Frame = Literal["world", "ee"]
+GripperCommand = Literal["open", "close", "toggle"]
+Event = Literal["reset", "start", "save", "discard"]
+EVENTS: tuple[str, ...] = ("reset", "start", "save", "discard")
+
+
+def _zeros3() -> np.ndarray:
+    return np.zeros(3)
+
+
+@dataclass
+class Command:
+    """What one device asks of one arm during one control tick.
+
+    translation: metres to move the end-effector target this tick.
+    rotation: axis-angle radians to rotate the target this tick.
+    frame: "world" or "ee" (end-effector frame) for the two deltas.
+    target_pos / target_quat: absolute world target (quat is wxyz); when set,
+        the deltas are applied on top of it.
+    gripper: "open", "close", "toggle" or None for no change.
+    arm: which arm (0 unless bimanual).
+    events: episode events raised this tick ("reset", "start", "save", "discard").
+    source: the device's name, for logs and recordings.
+    """
+
+    translation: np.ndarray = field(default_factory=_zeros3)
+    rotation: np.ndarray = field(default_factory=_zeros3)
+    frame: Frame = "world"
+    target_pos: np.ndarray | None = None
+    target_quat: np.ndarray | None = None
+    gripper: GripperCommand | None = None
+    arm: int = 0
+    events: tuple[str, ...] = ()
+    source: str = ""
+
+    def is_idle(self) -> bool:
+        """True when the command asks for nothing at all."""
+        return (
+            self.target_pos is None
+            and self.target_quat is None
+            and self.gripper is None
+            and not self.events
+            and not np.any(self.translation)
+            and not np.any(self.rotation)
+        )
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able form, as stored in recordings."""
+        return {
+            "translation": [float(v) for v in self.translation],
+            "rotation": [float(v) for v in self.rotation],
+            "frame": self.frame,
+            "target_pos": None if self.target_pos is None else [float(v) for v in self.target_pos],
+            "target_quat": None if self.target_quat is None else [float(v) for v in self.target_quat],
+            "gripper": self.gripper,
+            "arm": int(self.arm),
+            "events": list(self.events),
+            "source": self.source,
+        }

@@ -1,0 +1,263 @@
+"""The control tick: device commands -> EE targets -> clamp -> IK -> joint targets -> physics.
+
+A `Controller` drives one compiled scene. It knows nothing of files: whoever
+wants to record a tick passes an observer, called once before ctrl is written
+(the state then is what replay restores) and once after physics. Only ctrl and
+mj_step touch the physics MjData, which is what makes recordings replay bit
+for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import mujoco
+import numpy as np
+
+from devices.command import Command
+from scenes import Scene, actuator_for_joint
+from scenes.arena import TABLE_TOP
+from teleop.ik import ArmIK
+
+TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
+MAX_PHYSICS_STEP = 0.002  # s; the control period is split into equal steps no longer than this
+
+
+def physics_split(control_hz: float) -> tuple[int, float]:
+    """Substeps per control tick and the physics timestep (s) that makes the rate exact."""
+    period = 1.0 / control_hz
+    substeps = max(1, math.ceil(period / MAX_PHYSICS_STEP - 1e-9))
+    return substeps, period / substeps
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of two wxyz quaternions."""
+    out = np.empty(4)
+    mujoco.mju_mulQuat(out, np.asarray(a, float), np.asarray(b, float))
+    return out
+
+
+def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
+    """wxyz quaternion of an axis-angle vector (radians)."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-12:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    out = np.empty(4)
+    mujoco.mju_axisAngle2Quat(out, np.asarray(rotvec, float) / angle, angle)
+    return out
+
+
+@dataclass
+class ArmState:
+    """One arm's IK, its EE target (world frame, m and wxyz) and gripper."""
+
+    ik: ArmIK
+    site_id: int
+    ctrl_ids: np.ndarray  # actuator index per arm joint
+    gripper_id: int | None
+    target_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    target_quat: np.ndarray = field(default_factory=lambda: np.array([1.0, 0, 0, 0]))
+    gripper_open: bool = True
+
+
+@dataclass
+class ControlStats:
+    """Counters and operator messages that outlive one scene (a session keeps them across resets)."""
+
+    ik_failures: int = 0  # ticks in which IK could not reach the target
+    clamped: int = 0  # targets pulled back into the reachable workspace
+    ignored_commands: int = 0  # commands for no arm, or with non-finite numbers
+    messages: list[str] = field(default_factory=list)
+
+    def note(self, message: str) -> None:
+        """Remember a message for the operator (deduplicated, most recent last)."""
+        if not self.messages or self.messages[-1] != message:
+            self.messages.append(message)
+            del self.messages[:-20]
+
+
+@dataclass
+class StepResult:
+    """What happened in one control tick."""
+
+    time: float  # s, sim time after the tick
+    ik_ok: bool
+    tracking_error_m: np.ndarray  # per arm, target vs actual EE position after the step
+    events: tuple[str, ...] = ()
+
+
+class TickObserver(Protocol):
+    """Something that watches ticks (the recorder): it may read, never write, the MjData."""
+
+    def before_ctrl(self, controller: "Controller") -> None:
+        """Called after commands are applied, before ctrl is written: the state replay restores."""
+        ...
+
+    def after_physics(self, controller: "Controller", commands: Sequence[Command]) -> None:
+        """Called after the physics steps of the tick."""
+        ...
+
+
+class Controller:
+    """Commands in, physics out, for one compiled scene at a fixed control rate."""
+
+    def __init__(self, scene: Scene, control_hz: float, stats: ControlStats | None = None) -> None:
+        self.scene = scene
+        self.stats = stats if stats is not None else ControlStats()
+        self.control_hz = float(control_hz)
+        self.dt = 1.0 / self.control_hz  # s per control tick
+        self.substeps, self.timestep = physics_split(self.control_hz)
+        self.model = scene.model
+        self.data = scene.make_data()
+        self.arms: list[ArmState] = []
+        for arm in scene.arms:
+            ik = ArmIK(scene.xml, scene.assets, arm, self.dt)
+            ctrl_ids = np.array([actuator_for_joint(self.model, j) for j in arm.joints])
+            if None in list(ctrl_ids):
+                raise ValueError(f"an arm joint of {arm.ee_site} has no actuator")
+            gripper_id = self.model.actuator(arm.gripper.actuator).id if arm.gripper else None
+            state = ArmState(ik=ik, site_id=self.model.site(arm.ee_site).id, ctrl_ids=ctrl_ids, gripper_id=gripper_id)
+            state.target_pos, state.target_quat = ik.ee_pose()
+            self.arms.append(state)
+        self.base_pos = [
+            self.data.xpos[self.model.jnt_bodyid[self.model.joint(a.joints[0]).id]].copy() for a in scene.arms
+        ]
+        self.reach = scene.robot.reach
+        self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
+        self.steps = 0
+        # Per-tick errors for summaries; bounded so a long browser session does not grow without end.
+        self.tracking_errors: deque[np.ndarray] = deque(maxlen=TRACKING_HISTORY)
+
+    # --- what a device may look at (devices.view.SessionView) ---------------
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def n_arms(self) -> int:
+        return len(self.arms)
+
+    def ee_pose(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Actual EE (position m, wxyz quaternion), world frame."""
+        a = self.arms[arm]
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[a.site_id])
+        return self.data.site_xpos[a.site_id].copy(), quat
+
+    def target_pose(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """EE target (position m, wxyz quaternion), world frame."""
+        a = self.arms[arm]
+        return a.target_pos.copy(), a.target_quat.copy()
+
+    def body_pos(self, name: str) -> np.ndarray:
+        bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if bid < 0:
+            raise KeyError(f"no body named {name!r} in the scene")
+        return self.data.xpos[bid].copy()
+
+    def success(self) -> bool:
+        return self.scene.success(self.data)
+
+    # --- commands ------------------------------------------------------------
+
+    def note(self, message: str) -> None:
+        self.stats.note(message)
+
+    def clamp_target(self, arm: int, pos: np.ndarray) -> np.ndarray:
+        """Keep a target inside what the arm can reach and above the table."""
+        base = self.base_pos[arm]
+        out = pos.copy()
+        out[2] = min(max(out[2], TABLE_TOP + 0.005), base[2] + self.reach)
+        offset = out - base
+        dist = float(np.linalg.norm(offset))
+        if dist > self.reach:
+            out = base + offset * (self.reach / dist)
+        if not np.allclose(out, pos):
+            self.stats.clamped += 1
+        return out
+
+    def apply(self, command: Command) -> None:
+        """Fold one device command into its arm's target and gripper."""
+        if not 0 <= command.arm < len(self.arms):
+            self.stats.ignored_commands += 1
+            return
+        arm = self.arms[command.arm]
+        pos, quat = arm.target_pos.copy(), arm.target_quat.copy()
+        if command.target_pos is not None:
+            pos = np.asarray(command.target_pos, dtype=float)
+        if command.target_quat is not None:
+            quat = np.asarray(command.target_quat, dtype=float)
+        translation = np.asarray(command.translation, dtype=float)
+        rotation = np.asarray(command.rotation, dtype=float)
+        if command.frame == "ee":
+            rot = np.empty(9)
+            mujoco.mju_quat2Mat(rot, quat)
+            translation = rot.reshape(3, 3) @ translation
+            quat = quat_mul(quat, axis_angle_quat(rotation))
+        else:
+            quat = quat_mul(axis_angle_quat(rotation), quat)
+        pos = pos + translation
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0):
+            self.stats.ignored_commands += 1
+            self.note(f"ignored a non-finite target from {command.source or 'a device'}")
+            return
+        arm.target_pos = self.clamp_target(command.arm, pos)
+        arm.target_quat = quat / np.linalg.norm(quat)
+        if command.gripper == "open":
+            arm.gripper_open = True
+        elif command.gripper == "close":
+            arm.gripper_open = False
+        elif command.gripper == "toggle":
+            arm.gripper_open = not arm.gripper_open
+
+    # --- the tick ------------------------------------------------------------
+
+    def step(self, commands: Sequence[Command] = (), observer: TickObserver | None = None) -> StepResult:
+        """One control tick: apply commands, solve IK, step physics `substeps` times.
+
+        Episode events carried by the commands are returned, not acted on: the
+        session decides what they mean.
+        """
+        events: list[str] = []
+        for command in commands:
+            self.apply(command)
+            events.extend(command.events)
+        # The observed state is taken before ctrl changes, so that state k+1 is
+        # exactly what stepping state k under ctrl k produces.
+        if observer is not None:
+            observer.before_ctrl(self)
+        ik_ok = True
+        ctrl = self.data.ctrl
+        for arm in self.arms:
+            if not arm.ik.solve(arm.target_pos, arm.target_quat):
+                ik_ok = False
+            ctrl[arm.ctrl_ids] = arm.ik.q
+            if arm.gripper_id is not None:
+                g = arm.ik.arm.gripper
+                ctrl[arm.gripper_id] = g.open if arm.gripper_open else g.closed
+        if not ik_ok:
+            self.stats.ik_failures += 1
+            self.note("IK failed: holding the last good joint targets")
+
+        mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
+
+        errors = np.array([np.linalg.norm(self.data.site_xpos[a.site_id] - a.target_pos) for a in self.arms])
+        self.tracking_errors.append(errors)
+        self.steps += 1
+        if observer is not None:
+            observer.after_physics(self, commands)
+        return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
+
+    def tracking_error_mm(self, since: int = 0) -> dict[str, float | None]:
+        """Median and max distance (mm) from EE target to actual EE over the ticks kept (from index `since`)."""
+        kept = list(self.tracking_errors)[since:]
+        if not kept:
+            return {"median": None, "max": None}
+        errors = np.concatenate(kept) * 1000.0
+        return {"median": round(float(np.median(errors)), 3), "max": round(float(np.max(errors)), 3)}
