@@ -18,7 +18,7 @@ import time
 import mujoco
 import numpy as np
 
-from teleop.command import Command
+from devices.command import Command
 
 
 def _circle(i: int, radius: float = 0.08) -> np.ndarray:

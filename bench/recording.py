@@ -163,11 +163,10 @@ def record_pusher_episode(
 
 
 def _session(tmp: Path):
-    from teleop.command import Command
-    from teleop.session import RecordOptions, Session
+    from teleop import Command, Recorder, Session
 
-    session = Session("lift", "panda", seed=0, control_hz=1.0 / (SUBSTEPS * TIMESTEP),
-                      record=RecordOptions(tmp, ("mcap", "hdf5"), verify=False))
+    session = Session("lift", "panda", seed=0, control_hz=1.0 / (SUBSTEPS * TIMESTEP))
+    Recorder(session, tmp, ("mcap", "hdf5"), verify="off")
 
     def commands(k: int) -> list:
         v = np.array([0.0, 0.004 * np.sin(k / 15.0), 0.003 * np.cos(k / 11.0)])
@@ -180,7 +179,8 @@ def _session(tmp: Path):
 
 def _stop_recording(session) -> tuple[Path, float]:
     """Close the episode without the session's success check (not a recording cost)."""
-    writer, session.writer = session.writer, None
+    recorder = session.recorder
+    writer, recorder.writer = recorder.writer, None
     paths = writer.close(success=True, complete=True)
     return paths[0], writer.cpu_seconds
 
@@ -188,15 +188,18 @@ def _stop_recording(session) -> tuple[Path, float]:
 def _paced(session, commands, blocks: int, block_steps: int, period: float) -> tuple[list[float], list[float]]:
     """Mean tick latency (s) of alternating unrecorded / recorded blocks, ticks started every
     `period` s like a session's real-time loop. One episode stays open throughout; in the
-    unrecorded blocks the session just has no writer, so the writer thread idles. Blocks are
+    unrecorded blocks the recorder is detached, so the writer thread idles. Blocks are
     short so that the two halves of a pair see the machine alike."""
-    session.start_episode()
-    writer = session.writer
+    recorder = session.recorder
+    recorder.start()
     base, rec = [], []
     next_tick = time.perf_counter()
     for b in range(2 * blocks):
         recording = b % 2 == 1
-        session.writer = writer if recording else None
+        if recording:
+            session.attach(recorder)
+        else:
+            session.detach(recorder)
         lat = 0.0
         for k in range(block_steps):
             while (now := time.perf_counter()) < next_tick:
@@ -206,7 +209,7 @@ def _paced(session, commands, blocks: int, block_steps: int, period: float) -> t
             lat += time.perf_counter() - t0
             next_tick = max(next_tick + period, time.perf_counter())
         (rec if recording else base).append(lat / block_steps)
-    session.writer = writer
+    session.attach(recorder)
     _stop_recording(session)
     return base, rec
 
@@ -217,7 +220,7 @@ def _flat_out(session, commands, steps: int, record: bool) -> tuple[float, Path 
     Also the file and the writer thread's CPU seconds."""
     t0 = time.perf_counter()
     if record:
-        session.start_episode()
+        session.recorder.start()
     for k in range(steps):
         session.step(commands(k))
     path, cpu = _stop_recording(session) if record else (None, 0.0)
@@ -237,9 +240,9 @@ def measure(quick: bool) -> dict[str, float]:
         session, commands = _session(tmp)
         flat_base, flat_rec = [], []
         path = None
-        session.record_seconds = 0.0
+        session.recorder.record_seconds = 0.0
         paced_base, paced_rec = _paced(session, commands, blocks, block_steps, period)
-        control_share = session.record_seconds / (blocks * block_steps)
+        control_share = session.recorder.record_seconds / (blocks * block_steps)
         for _ in range(flat_reps):
             flat_base.append(_flat_out(session, commands, flat_steps, False)[0])
             t, path, writer_cpu = _flat_out(session, commands, flat_steps, True)

@@ -1,20 +1,25 @@
-"""`teleop bench`: run every speed measurement and print the figures.
+"""The speed figures: `python -m bench.run [--json] [--quick] [--only A,B]`, which `teleop bench` runs.
 
-Each bench module exposes `measure(quick: bool) -> dict[str, float]`; the keys
-are the figures issues name (medians or ratios, never pass/fail).
+bench/ lives in the source checkout beside tests/ and is not installed with the
+package. Each bench module exposes `measure(quick: bool) -> dict[str, float]`;
+the keys are the figures the issues name (medians or ratios, never pass/fail).
+With --json, stdout carries exactly one JSON object; progress goes to stderr.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import json
+import sys
+
+from rich.console import Console
 
 MODULES = ("control", "recording", "web", "export", "devices")
 
 
 def run_all(quick: bool = False, only: list[str] | None = None, progress: bool = True) -> dict[str, float]:
     """Run the named bench modules (all by default) and merge their figures."""
-    from rich.console import Console
-
     console = Console(stderr=True)
     results: dict[str, float] = {}
     for name in only or MODULES:
@@ -25,3 +30,27 @@ def run_all(quick: bool = False, only: list[str] | None = None, progress: bool =
             console.print(f"[dim]bench {name}...[/dim]")
         results.update(module.measure(quick))
     return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bench", description="measure the speed figures")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions (rougher figures)")
+    parser.add_argument("--only", default=None, help=f"comma list of benches ({', '.join(MODULES)})")
+    args = parser.parse_args(argv)
+    only = [w.strip() for w in args.only.split(",") if w.strip()] if args.only else None
+    unknown = [w for w in only or () if w not in MODULES]
+    if unknown:
+        print(f"bench: error: unknown bench {','.join(unknown)} (benches: {', '.join(MODULES)})", file=sys.stderr)
+        return 2
+    results = run_all(quick=args.quick, only=only, progress=True)
+    if args.json:
+        print(json.dumps(results))
+    else:
+        for key, value in results.items():
+            print(f"{key:<28} {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -46,7 +46,7 @@ def update_cost_ms(updates: int) -> float:
     """Median server-side cost of one scene update, in process, arm moving every tick."""
     import viser
 
-    from teleop.command import Command
+    from devices.command import Command
     from teleop.session import Session
     from teleop.web.drawing import SceneDrawer
     from teleop.web.sim_thread import SimThread
@@ -85,7 +85,7 @@ def _rate(first: dict, last: dict) -> float:
 
 def _updates_per_s(page, server, seconds: float) -> tuple[float, float, dict, dict]:
     """Scene updates/s the page received and the server sent over `seconds`; with the statuses around it."""
-    from teleop.web import headless
+    from tests import browser as headless
 
     got0, first = headless.scene_updates_received(page), server.status()
     time.sleep(seconds)
@@ -97,7 +97,7 @@ def _updates_per_s(page, server, seconds: float) -> tuple[float, float, dict, di
 def browser_figures(quick: bool) -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
-    from teleop.web import headless
+    from tests import browser as headless
 
     window = 4.0 if quick else 10.0
     out: dict[str, float] = {}

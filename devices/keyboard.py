@@ -294,7 +294,7 @@ class KeyboardDevice:
         held, presses = self.keys.take(time.monotonic())
         events: list[str] = []
         grippers = 0
-        n_arms = max(int(getattr(view, "n_arms", self.n_arms) or 1), 1)
+        n_arms = max(int(view.n_arms or 1), 1)
         for name in presses:
             action = KEY_ACTION[name]
             if action == "gripper":

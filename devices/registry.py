@@ -39,7 +39,7 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
         from devices.script import ScriptDevice
 
         if not arg:
-            raise DeviceError("script device needs a file: --device script:FILE.json")
+            raise DeviceError("the script device needs a file: script:FILE.json")
         return ScriptDevice(arg)
     if name == "keyboard":
         from devices.keyboard import KeyboardDevice
@@ -145,20 +145,30 @@ def _expand(word: str) -> list[str]:
     return [f"spacemouse:{i}" + (f":{arg}" if arg else "") for i in range(count)]
 
 
-def open_devices(spec: str, options: DeviceOptions) -> tuple[list[Device], list[str]]:
-    """Start every device in a comma list.
+KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script")
+
+
+def open_devices(
+    spec: str, options: DeviceOptions, require_any: bool = True, require_known: bool = False
+) -> tuple[list[Device], list[str]]:
+    """Start every device in a comma list: the one way `teleop run` and `teleop serve` open devices.
 
     Returns the devices that started and one line per device that did not,
-    so that a session can carry on with the rest. Raises DeviceError only when
-    the list names nothing usable at all. A started device may carry a
-    caveat in its `warning` attribute (a keyboard under Wayland) for the
+    so that a session can carry on with the rest. A malformed script is an
+    error (ScriptError); so is a list from which nothing started, when
+    `require_any`, and a word naming no known device, when `require_known`
+    (the browser session, where nothing else would tell the user). A started
+    device may carry a caveat (`Cautioned`: a keyboard under Wayland) for the
     session to print.
     """
     started: list[Device] = []
     problems: list[str] = []
     words = [w.strip() for w in spec.split(",") if w.strip()]
     if not words:
-        raise DeviceError("no device given: --device needs at least one of keyboard, spacemouse, gizmo, script:FILE")
+        raise DeviceError(f"no device given: name at least one of {', '.join(KNOWN_DEVICES)}")
+    for word in words if require_known else ():
+        if word.partition(":")[0].strip().lower() not in KNOWN_DEVICES:
+            raise DeviceError(f"unknown device {word!r} (known: keyboard, spacemouse[:N], gizmo, script:FILE)")
     for word in [w for word in words for w in _expand(word)]:
         try:
             device = make_device(word, options)
@@ -167,6 +177,6 @@ def open_devices(spec: str, options: DeviceOptions) -> tuple[list[Device], list[
             problems.append(f"{word}: {exc}")
             continue
         started.append(device)
-    if not started:
+    if require_any and not started:
         raise DeviceError("no device could start: " + "; ".join(problems))
     return started, problems

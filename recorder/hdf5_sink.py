@@ -16,19 +16,24 @@ Rows are written every WRITE_PERIOD seconds (ALONGSIDE_MCAP_PERIOD when an MCAP
 file records the same episode: that one is the live format with the tight loss
 bound, and each HDF5 write holds the GIL for about a millisecond), then
 `num_samples`/`total` are updated and the file flushed, so a file whose writer
-died still says how many rows are whole.
+died still says how many rows are whole. A write that fails (a full disk) is
+undone back to the last flush (recorder.rollback_file): the cut file stays
+readable, its `num_samples` honest, and the process does not crash.
 """
 
 from __future__ import annotations
 
+import atexit
 import json
 import time
+import weakref
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from recorder.robomimic_obs import Recorded, obs_pairs
+from recorder.rollback_file import RollbackFile
 from replay import schema
 
 DEMO = "data/demo_0"
@@ -40,6 +45,7 @@ ENV_KEYS = ("scene", "robot", "robot_spec", "seed", "task", "cameras", "control_
             "nstate", "nq", "nv", "nu", "n_arms", "mujoco_version", "machine")
 ENV_TYPE = 0  # not one of robomimic's EnvType values: robomimic cannot rebuild this environment itself
 OUTCOME_KEYS = ("success", "complete", "steps")  # demo attrs success, complete, num_samples
+_open_sinks: "weakref.WeakSet[Hdf5Sink]" = weakref.WeakSet()
 
 
 class Hdf5Sink:
@@ -55,14 +61,20 @@ class Hdf5Sink:
         self._n = 0
         self._pending: list[tuple[np.ndarray, list[str]]] = []
         self._last_write = 0.0
-        # v108: dense attribute storage, so a large model XML fits in `model_file`.
-        self._f = f = h5py.File(path, "w-", libver=("v108", "latest"))
+        # HDF5 writes through a RollbackFile: a failed write (full disk) can neither corrupt
+        # the file nor crash HDF5 (see recorder.rollback_file). "w-": never overwrite.
+        self._file = RollbackFile(path)
+        self._f = None
         try:
+            # v108: dense attribute storage, so a large model XML fits in `model_file`.
+            self._f = h5py.File(self._file, "w", libver=("v108", "latest"))
             self._setup(meta)
+            self._settle()
         except BaseException:
-            f.close()
+            self._close_file()
             path.unlink(missing_ok=True)
             raise
+        _open_sinks.add(self)
 
     def _setup(self, meta: dict) -> None:
         f = self._f
@@ -138,6 +150,8 @@ class Hdf5Sink:
         Each write costs ~1 ms whatever its size, so it happens at most every
         `write_period` seconds unless forced.
         """
+        if self._file.error is not None:
+            raise self._write_error()
         if not self._pending or (not force and time.monotonic() - self._last_write < self.write_period):
             return
         rows = np.concatenate([r for r, _ in self._pending])
@@ -150,10 +164,11 @@ class Hdf5Sink:
             ds[n0 : n0 + n] = rows[:, self._cols[field]].reshape(n, *shape)
         self._cmds.resize(n0 + n, axis=0)
         self._cmds[n0 : n0 + n] = commands
-        self._n = n0 + n
-        self._demo.attrs["num_samples"] = self._n
-        self._data.attrs["total"] = self._n
+        self._demo.attrs["num_samples"] = n0 + n
+        self._data.attrs["total"] = n0 + n
         self._f.flush()
+        self._settle()  # on a write error the file goes back to its last n0 rows, and this raises
+        self._n = n0 + n
         self._last_write = time.monotonic()
 
     def finish(self, end_meta: dict) -> None:
@@ -178,7 +193,9 @@ class Hdf5Sink:
         demo.attrs["success"] = success
         demo.attrs["complete"] = complete
         demo.attrs["closed"] = True
-        self._f.close()
+        self._close_file()
+        if self._file.error is not None:  # the file went back to its last flushed rows
+            raise self._write_error()
 
     def _write_obs_pairs(self) -> None:
         """obs/ee_pose, obs/ee_target and next_obs/<key> for every obs key (see recorder.robomimic_obs)."""
@@ -199,7 +216,39 @@ class Hdf5Sink:
         demo.attrs["next_obs_final"] = pairs.final
 
     def abort(self) -> None:
-        try:
-            self._f.close()
-        except Exception:  # noqa: BLE001 - closing before delete; nothing to save
-            pass
+        """Close without finishing (after a write error, or before deleting): the file keeps its last flushed rows."""
+        self._close_file()
+
+    def _settle(self) -> None:
+        """After HDF5 flushed: keep the bytes as the state to come back to, or raise the write error."""
+        if self._file.error is not None:
+            raise self._write_error()
+        self._file.commit()
+
+    def _write_error(self) -> OSError:
+        exc = self._file.error
+        return OSError(exc.errno, exc.strerror or str(exc), str(self.path))
+
+    def _close_file(self) -> None:
+        """Close the HDF5 file once, then undo a failed write and close the OS file. Never raises.
+
+        h5py's close closes every dataset and group of the file with it, so no h5py
+        object is left to be finalized later, in whatever order, by the interpreter.
+        """
+        _open_sinks.discard(self)
+        f, self._f = self._f, None
+        if f is not None:
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - HDF5 never saw a write fail; nothing else is expected here
+                pass
+        self._file.rollback()
+        self._file.close()
+
+
+@atexit.register
+def _close_open_sinks() -> None:
+    """Close a file still open at interpreter exit while Python still runs (HDF5's own exit
+    hook would call its RollbackFile after the interpreter is gone, and crash)."""
+    for sink in list(_open_sinks):
+        sink.abort()

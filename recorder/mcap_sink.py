@@ -125,7 +125,7 @@ class McapSink:
         try:
             self._setup(meta, layout)
         except BaseException:
-            self._file.close()
+            self.abort()
             path.unlink(missing_ok=True)
             raise
 
@@ -236,6 +236,13 @@ class McapSink:
         self._file.close()
 
     def abort(self) -> None:
-        """Close the handle without a footer (used before deleting the file)."""
+        """Close the handle without a footer (after a write error, or before deleting). Never raises.
+
+        After a write error the file ends in a cut chunk; the linear reader
+        (replay.mcap_read) keeps every whole chunk before it.
+        """
         if not self._file.closed:
-            self._file.close()
+            try:
+                self._file.close()  # may retry writing what the OS refused: that fails again, and the handle closes anyway
+            except OSError:
+                pass

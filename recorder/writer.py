@@ -8,6 +8,9 @@ flushes the files to the OS, so a kill -9 loses at most about FLUSH_PERIOD plus
 one batch's write time.
 An episode left open at interpreter exit (Ctrl-C, an exception) is closed as
 incomplete by an atexit hook, so what was recorded is kept.
+The first write error (a full disk, a file size limit) stops the writer thread;
+`claim` and `close` then raise a one-line RecorderError naming the file and the
+cause, and every file keeps what reached it (readers see it as cut short).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from recorder.hdf5_sink import ALONGSIDE_MCAP_PERIOD, WRITE_PERIOD, Hdf5Sink
 from recorder.mcap_sink import McapSink
 from recorder.step import StepRecord, pack_into
 from replay import schema
-from scenes.errors import TeleopError
+from scenes.errors import TeleopError, first_line
 
 FORMATS = ("mcap", "hdf5")
 SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
@@ -55,6 +58,13 @@ def next_episode_index(directory: Path) -> int:
         return 0
     found = [int(m.group(1)) for p in directory.iterdir() if (m := _EPISODE_RE.match(p.name))]
     return max(found) + 1 if found else 0
+
+
+def _error_line(path: Path, exc: BaseException) -> str:
+    """'<file>: <cause>' on one line: the OS's words for an OSError ("No space left on device")."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{path}: {exc.strerror}"
+    return f"{path}: {first_line(exc)}"
 
 
 def _commands_json(commands: list) -> str:
@@ -110,6 +120,9 @@ class EpisodeWriter:
             except FileExistsError:
                 self._drop_files()
                 raise RecorderError(f"{path}: episode file already exists") from None
+            except OSError as exc:  # a full disk, no permission: name the file and the cause
+                self._drop_files()
+                raise RecorderError(_error_line(path, exc)) from None
             except BaseException:
                 self._drop_files()
                 raise
@@ -120,7 +133,8 @@ class EpisodeWriter:
         self._commands: dict[int, list] = {}  # step -> its commands, for the (few) steps that have some
         self._drained = 0  # rows the writer thread has taken
         self._stop = threading.Event()
-        self._error: BaseException | None = None
+        self._error: BaseException | None = None  # the first write error; it stops the writer thread
+        self._error_path: Path | None = None  # the file it happened in
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"episode-writer-{index}", daemon=True)
         self._thread.start()
@@ -163,16 +177,22 @@ class EpisodeWriter:
         if self._closed:
             return self.paths
         self._shutdown()
-        if self._error is not None:
+        if self._error is not None:  # every file keeps what reached it: a cut file reads as incomplete
             self._abort_sinks()
             raise RecorderError(self._why_stopped())
         end = {"success": bool(success), "complete": bool(complete), "steps": self.steps}
         self.meta.update(end)
         for sink in self._sinks:
+            if self._error is not None:  # an earlier file failed to finish: close this one as it is
+                sink.abort()
+                continue
             try:
                 sink.finish(end)
-            except OSError as exc:
-                raise RecorderError(f"{sink.path}: cannot finish the file: {exc}") from None
+            except Exception as exc:  # noqa: BLE001 - a full disk at the end; the file keeps its last flushed rows
+                self._error, self._error_path = exc, sink.path
+                sink.abort()
+        if self._error is not None:
+            raise RecorderError(self._why_stopped())
         return self.paths
 
     def discard(self) -> None:
@@ -185,7 +205,8 @@ class EpisodeWriter:
 
     def _why_stopped(self) -> str:
         if self._error is not None:
-            return f"episode {self.index}: writer failed: {self._error}"
+            where = self._error_path or self.directory
+            return f"{_error_line(where, self._error)} (episode {self.index} cut short; what was written is kept)"
         return f"episode {self.index} is already closed"
 
     def _shutdown(self) -> None:
@@ -222,11 +243,16 @@ class EpisodeWriter:
         commands = [_commands_json(pop(k, ())) for k in range(start, end)]  # encoded once for all sinks
         self._drained = end
         for sink in self._sinks:
-            sink.write(rows, commands)
-            sink.flush()
+            try:
+                sink.write(rows, commands)
+                sink.flush()
+            except BaseException:
+                self._error_path = sink.path  # _run keeps the error and stops: no file is written again
+                raise
             time.sleep(50e-6)  # let the control thread have the GIL between sinks
 
     def _abort_sinks(self) -> None:
+        """Close every file without finishing it (sinks' abort never raises)."""
         for sink in self._sinks:
             sink.abort()
 

@@ -27,7 +27,7 @@ from pathlib import Path
 from replay.engine import replay_states
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import TeleopError, first_line
-from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, robot_layout
+from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, is_channel_first, robot_layout
 from replay.render import FastRenderer, RenderError, warm_up
 
 LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
@@ -225,7 +225,20 @@ def _lerobot():
     return LeRobotDataset
 
 
+def _match_image_layout(spec: dict, theirs: dict) -> None:
+    """Declare our cameras in the existing dataset's channel order (older exports are (H, W, 3))."""
+    for key, ft in spec.items():
+        other = theirs.get(key)
+        if ft["dtype"] not in ("image", "video") or other is None or len(other.get("shape") or ()) != 3:
+            continue
+        if is_channel_first(other) != is_channel_first(ft):
+            shape = ft["shape"]
+            ft["shape"] = (shape[1], shape[2], shape[0]) if is_channel_first(ft) else (shape[2], shape[0], shape[1])
+            ft["names"] = list(other["names"])
+
+
 def _check_appendable(meta, spec: dict, fps: int, robot_type: str, out: Path) -> None:
+    _match_image_layout(spec, meta.features)
     problems = []
     if meta.fps != fps:
         problems.append(f"fps {meta.fps} there, {fps} here")
@@ -390,6 +403,7 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
     from tqdm import tqdm
 
     keys = [feature_key(c) for c in cameras]
+    channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc="export", disable=not opts.progress, file=sys.stderr, dynamic_ncols=True)
     try:
@@ -409,8 +423,8 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
                 for k, data in replay_states(ep, model):
                     frame = build(data, ep.ctrl[k], ep.ee_target[k])
                     if renderer is not None:
-                        for key, image in zip(keys, renderer.render_all(data)):
-                            frame[key] = image
+                        for i, key in enumerate(keys):
+                            frame[key] = renderer.render(data, i, channel_first[i])
                     frame["task"] = task
                     ds.add_frame(frame)
                     bar.update(1)

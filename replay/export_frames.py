@@ -27,6 +27,8 @@ import numpy as np
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 DELTA_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz")
+HWC_NAMES = ("height", "width", "channels")
+CHW_NAMES = ("channels", "height", "width")
 
 
 @dataclass
@@ -88,8 +90,19 @@ def feature_key(camera: str) -> str:
     return "observation.images." + re.sub(r"[^A-Za-z0-9_-]+", "_", camera).strip("_")
 
 
-def features(arms: list[ArmLayout], action: str, cameras: list[str], size: tuple[int, int], video: bool) -> dict:
-    """The LeRobot feature spec (dtype, shape, names) for these arms, action mode and cameras."""
+def features(
+    arms: list[ArmLayout], action: str, cameras: list[str], size: tuple[int, int], video: bool,
+    channel_first: bool | None = None,
+) -> dict:
+    """The LeRobot feature spec (dtype, shape, names) for these arms, action mode and cameras.
+
+    Video cameras are declared channel-first, (3, H, W) named channels/height/width
+    (`channel_first` None: for video only). LeRobot takes either order (add_frame's
+    check, its streaming encoder, the policies' feature shapes) and decodes both to
+    the same (3, H, W) tensors, but its streaming encoder computes the per-frame image
+    statistics ~5x faster from channel-first frames: its per-channel reductions then
+    run over contiguous memory. That is more than half of an export's CPU time.
+    """
     if action not in ACTION_MODES:
         raise ValueError(f"unknown action mode {action!r} (modes: {', '.join(ACTION_MODES)})")
     state = [n for a in arms for n in [*a.joints, *a.gripper_name]]
@@ -106,13 +119,21 @@ def features(arms: list[ArmLayout], action: str, cameras: list[str], size: tuple
         "action": {"dtype": "float32", "shape": (len(act),), "names": act},
     }
     width, height = size
+    if channel_first is None:
+        channel_first = video
     for cam in cameras:
         spec[feature_key(cam)] = {
             "dtype": "video" if video else "image",
-            "shape": (height, width, 3),
-            "names": ["height", "width", "channels"],
+            "shape": (3, height, width) if channel_first else (height, width, 3),
+            "names": list(CHW_NAMES if channel_first else HWC_NAMES),
         }
     return spec
+
+
+def is_channel_first(feature: dict) -> bool:
+    """Whether an image/video feature is declared (3, H, W) rather than (H, W, 3)."""
+    names = list(feature.get("names") or [])
+    return bool(names) and names[0] in ("channels", "channel")
 
 
 def _site_quat(data: mujoco.MjData, site: int) -> np.ndarray:

@@ -237,11 +237,12 @@ class FastRenderer:
             raise RenderError("the OpenGL context has no offscreen framebuffer")
         self._scene = mujoco.MjvScene(self.model, maxgeom=max(1000, 2 * self.model.ngeom))
 
-    def render(self, data: mujoco.MjData, camera: int | str = 0) -> np.ndarray:
+    def render(self, data: mujoco.MjData, camera: int | str = 0, channel_first: bool = False) -> np.ndarray:
         """A new (H, W, 3) uint8 image, top row first, of camera index or name at `data`'s poses.
 
         `data` must be forward-computed (mj_forward, or at least kinematics and
-        mj_camlight: camera and light poses live in MjData).
+        mj_camlight: camera and light poses live in MjData). With `channel_first`
+        the image is (3, H, W), each channel contiguous (what the export feeds LeRobot).
         """
         if getattr(_current, "renderer", None) is not self:  # another renderer's context may be current
             self._ctx.make_current()
@@ -253,11 +254,12 @@ class FastRenderer:
         )
         mujoco.mjr_render(self._rect, self._scene, self._con)
         mujoco.mjr_readPixels(self._buf, None, self._rect, self._con)
-        return self._buf[::-1].copy()  # GL rows run bottom-up; callers keep frames, so copy
+        image = self._buf[::-1]  # GL rows run bottom-up; callers keep frames, so copy
+        return np.ascontiguousarray(image.transpose(2, 0, 1)) if channel_first else image.copy()
 
-    def render_all(self, data: mujoco.MjData) -> list[np.ndarray]:
+    def render_all(self, data: mujoco.MjData, channel_first: bool = False) -> list[np.ndarray]:
         """One image per camera, in the order given at construction."""
-        return [self.render(data, i) for i in range(len(self.camera_ids))]
+        return [self.render(data, i, channel_first) for i in range(len(self.camera_ids))]
 
     def close(self) -> None:
         if getattr(_current, "renderer", None) is self:

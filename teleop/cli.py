@@ -1,6 +1,7 @@
 """`teleop` command line: one subcommand per job, each defined next to what it drives.
 
-Every user error ends as one line on stderr and exit code 2 (UsageError);
+Every error a user can cause (a `TeleopError`: a flag, a file, a device, the disk)
+ends as one line on stderr and exit code 2;
 tracebacks are for bugs only. With `--json`, stdout carries the one JSON object
 and nothing else (teleop/json_output.py).
 """
@@ -13,7 +14,7 @@ import signal
 import sys
 
 from teleop import cli_devices, cli_export, cli_record, cli_run, cli_serve
-from teleop.errors import UsageError
+from scenes.errors import TeleopError, first_line
 from teleop.json_output import json_stdout
 
 MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export)
@@ -44,8 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with json_stdout() if as_json else contextlib.nullcontext():
             return int(args.func(args) or 0)
-    except UsageError as exc:
-        print(f"teleop {args.command}: error: {exc}", file=sys.stderr)
+    except TeleopError as exc:
+        print(f"teleop {args.command}: error: {first_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"teleop {args.command}: interrupted", file=sys.stderr)

@@ -3,14 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import signal
+import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
-from replay.errors import first_line
+import numpy as np
+
+from devices.base import Cautioned, Device, Restartable
+from devices.registry import DeviceOptions, open_devices
+from recorder import RecorderError
+from scenes import BUILTIN_ROBOTS, TASKS
+from scenes.errors import TeleopError
 from teleop.errors import UsageError
 from teleop.json_output import print_json
+from teleop.loop import run_episode
+from teleop.recording import Recorder
+from teleop.session import Session
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -48,8 +61,6 @@ def add_session_args(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_robots(args: argparse.Namespace) -> int:
-    from scenes import BUILTIN_ROBOTS
-
     width = max(len(n) for n in BUILTIN_ROBOTS)
     for name, (summary, _) in BUILTIN_ROBOTS.items():
         print(f"{name:<{width}}  {summary}")
@@ -57,8 +68,6 @@ def cmd_robots(args: argparse.Namespace) -> int:
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    from scenes import TASKS
-
     width = max(len(n) for n in TASKS)
     for name, task in TASKS.items():
         arms = "bimanual only" if task.needs_bimanual else ("single-arm or bimanual" if task.allows_bimanual else "single-arm")
@@ -66,57 +75,45 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     return 0
 
 
-def make_session(args: argparse.Namespace):
-    """A Session from the shared flags, with every user error as UsageError."""
-    from scenes import SceneError
-    from teleop.session import RecordOptions, Session
-
-    record = None
+def make_session(args: argparse.Namespace, verify: str = "sync", on_error: str = "raise") -> Session:
+    """A Session from the shared flags, with a Recorder attached when --record is given."""
+    if args.record is not None and args.record.exists() and not args.record.is_dir():
+        raise UsageError(f"--record {args.record}: exists and is not a directory")
+    session = Session(scene=args.scene, robot=args.robot, seed=args.seed, control_hz=args.control_hz)
     if args.record is not None:
-        if args.record.exists() and not args.record.is_dir():
-            raise UsageError(f"--record {args.record}: exists and is not a directory")
         formats = ("mcap", "hdf5") if args.format == "both" else (args.format,)
-        record = RecordOptions(args.record, formats, verify=not args.no_verify)
-    try:
-        return Session(scene=args.scene, robot=args.robot, seed=args.seed, control_hz=args.control_hz, record=record)
-    except SceneError as exc:
-        raise UsageError(str(exc)) from None
-    except ValueError as exc:
-        raise UsageError(first_line(exc)) from None
+        Recorder(session, args.record, formats, verify="off" if args.no_verify else verify, on_error=on_error)
+    return session
 
 
-def open_session_devices(spec: str, args: argparse.Namespace, n_arms: int, log=print):
-    from devices.base import DeviceError
-    from devices.registry import DeviceOptions, open_devices
-    from devices.script import ScriptError
+def open_session_devices(args: argparse.Namespace, n_arms: int, serving: bool = False,
+                         log: Callable[[str], None] | None = None) -> tuple[list[Device], list[str]]:
+    """The devices of --device (one way for run and serve); problems and caveats go to `log`.
 
+    Serving, a session may start with no device but the page (the gizmo comes and goes with
+    browsers), and a misspelt device name is an error rather than a line in the device list.
+    """
+    log = log or (lambda m: print(m, file=sys.stderr))
     if args.pos_speed <= 0 or args.rot_speed <= 0:
         raise UsageError("--pos-speed and --rot-speed must be positive")
-    try:
-        devices, problems = open_devices(spec, DeviceOptions(pos_speed=args.pos_speed, rot_speed=args.rot_speed, n_arms=n_arms))
-    except ScriptError as exc:
-        raise UsageError(str(exc)) from None
-    except DeviceError as exc:
-        raise UsageError(str(exc)) from None
+    options = DeviceOptions(pos_speed=args.pos_speed, rot_speed=args.rot_speed, n_arms=n_arms)
+    devices, problems = open_devices(args.device, options, require_any=not serving, require_known=serving)
     for line in problems:
         log(f"device not started: {line}")
     for device in devices:
-        if getattr(device, "warning", ""):
+        if isinstance(device, Cautioned) and device.warning:
             log(f"{device.name}: {device.warning}")
-    return devices
+    return devices, problems
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from devices.base import DeviceError
-    from recorder import RecorderError
-
     if args.episodes < 1:
         raise UsageError("--episodes must be at least 1")
     if args.seconds is not None and args.seconds <= 0:
         raise UsageError("--seconds must be positive")
     log = (lambda m: print(m, file=sys.stderr)) if args.json else print
     session = make_session(args)
-    devices = open_session_devices(args.device, args, session.n_arms, log=lambda m: print(m, file=sys.stderr))
+    devices, _ = open_session_devices(args, session.n_arms)
     scripted = all(d.kind == "script" for d in devices)
     if args.seconds is None and not scripted:
         log("running until Ctrl-C (give --seconds to stop by itself)")
@@ -128,50 +125,31 @@ def cmd_run(args: argparse.Namespace) -> int:
             if episode > 0:
                 session.reset(args.seed + episode)
             for d in devices:
-                if hasattr(d, "restart"):
+                if isinstance(d, Restartable):
                     d.restart()
-            if args.record:
-                session.start_episode()
-            ik_before = session.ik_failures
-            t0 = time.perf_counter()
-            sim0 = session.time
-            while True:
-                if args.seconds is not None and session.time - sim0 >= args.seconds - 1e-9:
-                    break
-                if args.seconds is None and scripted and all(d.finished for d in devices):
-                    break
-                commands = []
-                for d in devices:
-                    commands.extend(d.poll(session, session.dt))
-                session.step(commands)
-                if not scripted:  # people drive in real time
-                    lag = (session.time - sim0) - (time.perf_counter() - t0)
-                    if lag > 0:
-                        time.sleep(lag)
-            success = session.success()
-            paths = session.save_episode() if args.record else []
-            episodes.append(
-                {
-                    "seed": session.seed,
-                    "steps": session.steps,
-                    "sim_seconds": round(session.time - sim0, 6),
-                    "success": success,
-                    "ik_failures": session.ik_failures - ik_before,
-                    "ee_tracking_error_mm": session.tracking_error_mm(),
-                    "files": [str(p) for p in paths],
-                    **({"replay_bit_exact": session.last_verify.bit_exact} if paths and session.last_verify is not None else {}),
-                }
-            )
+            result = run_episode(session, devices, seconds=args.seconds, realtime=not scripted)  # people drive in real time
+            entry = {
+                "seed": result.seed,
+                "steps": result.steps,
+                "sim_seconds": result.sim_seconds,
+                "success": result.success,
+                "ik_failures": result.ik_failures,
+                "ee_tracking_error_mm": result.ee_tracking_error_mm,
+                "files": [str(p) for p in result.files],
+            }
+            if result.replay_bit_exact is not None:
+                entry["replay_bit_exact"] = result.replay_bit_exact
+            episodes.append(entry)
     except KeyboardInterrupt:
         interrupted = True
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         session.close()
         log("interrupted: the episode in progress was saved, marked incomplete")
-    except DeviceError as exc:
-        session.close()
-        raise UsageError(str(exc)) from None
     except RecorderError as exc:
         raise UsageError(f"recording failed: {exc}") from None
+    except TeleopError:
+        session.close()
+        raise
     finally:
         for d in devices:
             d.close()
@@ -218,19 +196,25 @@ def _merged_error(episodes: list[dict]) -> dict:
     maxs = [e["ee_tracking_error_mm"]["max"] for e in episodes if e["ee_tracking_error_mm"]["max"] is not None]
     if not meds:
         return {"median": None, "max": None}
-    import numpy as np
-
     return {"median": round(float(np.median(meds)), 3), "max": round(float(max(maxs)), 3)}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bench.run import MODULES, run_all
-
-    only = [w.strip() for w in args.only.split(",")] if args.only else None
-    unknown = [w for w in only or () if w not in MODULES]
+    """Run the checkout's bench/ (not installed with the package) in a fresh process and pass its figures on."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / "bench" / "run.py").is_file():
+        raise UsageError("the bench needs a source checkout: bench/ is not installed with the package")
+    benches = sorted(p.stem for p in (root / "bench").glob("*.py") if p.stem not in ("run", "__init__", "__main__"))
+    unknown = [w.strip() for w in (args.only or "").split(",") if w.strip() and w.strip() not in benches]
     if unknown:
-        raise UsageError(f"--only {','.join(unknown)}: unknown bench (benches: {', '.join(MODULES)})")
-    results = run_all(quick=args.quick, only=only, progress=not args.json)
+        raise UsageError(f"--only {','.join(unknown)}: unknown bench (benches: {', '.join(benches)})")
+    flags = [*(["--quick"] if args.quick else []), *(["--only", args.only] if args.only else []), "--json"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    done = subprocess.run([sys.executable, "-m", "bench.run", *flags], cwd=root, env=env, stdout=subprocess.PIPE,
+                          stderr=None, text=True)
+    if done.returncode != 0:
+        raise UsageError(f"the bench failed (exit {done.returncode}); its output is above")
+    results = json.loads(done.stdout)
     if args.json:
         print_json(results)
     else:

@@ -18,15 +18,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
-from devices.base import Device, DeviceError, InputStamped
+from devices.base import Device, InputStamped
 from devices.command import Command
 from scenes.errors import first_line
 from teleop.controller import StepResult
-
-if TYPE_CHECKING:  # only for annotations: the session module imports this one's users, not this
-    from teleop.session import Session
+from teleop.session import Session
 
 MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 
@@ -76,7 +74,7 @@ class EpisodeResult:
 
 
 def poll_devices(
-    session: "Session",
+    session: Session,
     devices: Sequence[Device],
     broken: dict[str, str] | None = None,
 ) -> list[Command]:
@@ -107,7 +105,7 @@ def newest_input_time(devices: Sequence[Device]) -> float:
 
 
 def run_episode(
-    session: "Session",
+    session: Session,
     devices: Sequence[Device],
     *,
     seconds: float | None = None,
@@ -120,8 +118,8 @@ def run_episode(
     record: bool | None = None,
     broken_devices: dict[str, str] | None = None,
     guard: contextlib.AbstractContextManager | None = None,
-    before_tick: Callable[["Session"], None] | None = None,
-    after_tick: Callable[["Session", StepResult], None] | None = None,
+    before_tick: Callable[[Session], None] | None = None,
+    after_tick: Callable[[Session, StepResult], None] | None = None,
     pacer: Pacer | None = None,
 ) -> EpisodeResult:
     """Run ticks until a stop rule fires; returns what happened.
@@ -209,5 +207,3 @@ def run_episode(
         replay_bit_exact=bit_exact,
     )
 
-
-__all__ = ["DeviceError", "EpisodeResult", "Pacer", "newest_input_time", "poll_devices", "run_episode"]

@@ -87,7 +87,7 @@ class Recorder:
         self.episodes_saved = 0
         self.episodes_discarded = 0
         self.last_verify: VerifyResult | None = None
-        self.verified: dict[str, bool | None] = {}  # first file of each saved episode -> bit exact (None: failed to check)
+        self.verified: dict[str, bool | None] = {}  # first file of each saved episode -> bit exact (None: still checking)
         self.on_verified: Callable[[Path, VerifyResult | None], None] | None = None
         self.error: str | None = None  # the last write error, one line
         self.record_seconds = 0.0  # control-thread time spent recording (state capture, row filling, commit)
@@ -167,7 +167,8 @@ class Recorder:
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
             index = next_episode_index(self.directory)
-            self.writer = EpisodeWriter(self.directory, index, self.formats, self.metadata(controller, index))
+            meta = self.metadata(controller, index)
+            self.writer = EpisodeWriter(self.directory, index, self.formats, _writer_meta(meta))
         except OSError as exc:
             self._failed(RecorderError(f"{self.directory}: cannot start an episode: {exc.strerror or exc}"))
             return
@@ -256,6 +257,7 @@ class Recorder:
             raise exc
 
     def _check(self, path: Path) -> None:
+        self.verified[str(path)] = None
         if self.verify == "sync":
             self._verified(path, verify_file(path, warn=False))
             return
@@ -271,8 +273,15 @@ class Recorder:
 
     def _verified(self, path: Path, result: VerifyResult | None) -> None:
         self.last_verify = result
-        self.verified[str(path)] = None if result is None else result.bit_exact
+        self.verified[str(path)] = result is not None and bool(result.bit_exact)
         if result is not None and not result.bit_exact:
             self.session.note(f"episode {path.name} did not replay exactly (step {result.first_divergence_step})")
         if self.on_verified is not None:
             self.on_verified(path, result)
+
+
+def _writer_meta(meta: EpisodeMeta):
+    """TRANSITIONAL: the writer still takes dict metadata (to be replaced by EpisodeMeta itself)."""
+    out = {k: v for k, v in meta.to_json().items() if k not in ("success", "complete", "steps", "recovered")}
+    out.update(model_xml=meta.model_xml, assets=dict(meta.assets))
+    return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from teleop.command import Command
+from devices.command import Command
 from teleop.session import Session
 
 

@@ -7,8 +7,9 @@ import pytest
 
 from devices.script import ScriptDevice
 from scenes import BUILTIN_ROBOTS, load_robot
-from teleop.command import Command
-from teleop.session import Session, physics_split
+from devices.command import Command
+from teleop.controller import physics_split
+from teleop.session import Session
 
 from tests.conftest import write_script
 

@@ -41,11 +41,11 @@ def test_session_rows_hold_what_each_tick_did(tmp_path: Path):
 
     from recorder.writer import BLOCK_ROWS
     from replay import load_episode
-    from teleop.command import Command
-    from teleop.session import RecordOptions, Session
+    from teleop import Command, Recorder, Session
 
-    session = Session("lift", "panda", seed=2, control_hz=30, record=RecordOptions(tmp_path, ("mcap", "hdf5"), verify=False))
-    session.start_episode()
+    session = Session("lift", "panda", seed=2, control_hz=30)
+    recorder = Recorder(session, tmp_path, ("mcap", "hdf5"), verify="off")
+    recorder.start()
     site = session.arms[0].site_id
     steps = BLOCK_ROWS + 40
     poses, targets, ctrls = [], [], []
@@ -59,7 +59,7 @@ def test_session_rows_hold_what_each_tick_did(tmp_path: Path):
         poses.append(np.concatenate([session.data.site_xpos[site], quat]))
         targets.append(np.concatenate(session.target_pose(0)))
         ctrls.append(session.data.ctrl.copy())
-    paths = session.save_episode()
+    paths = recorder.save()
     nq, nv = session.model.nq, session.model.nv
     for path in paths:
         ep = load_episode(path)

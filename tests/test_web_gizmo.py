@@ -82,16 +82,16 @@ def test_host_checks():
 
 def test_served_loop_runs_in_real_time_and_records(tmp_path):
     """The WebApp in-process, no browser: real-time loop, panel commands, save, exact replay check."""
-    from teleop.command import Command
-    from teleop.session import RecordOptions, Session
+    from teleop import Command, Recorder, Session
     from teleop.web.app import WebApp
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    session = Session(record=RecordOptions(tmp_path, ("mcap",), verify=False))
+    session = Session()
+    Recorder(session, tmp_path, ("mcap",), verify="background", on_error="stop")
     gizmo = GizmoDevice()
-    app = WebApp(session, [gizmo], [], port=port, verify=True, camera=False)
+    app = WebApp(session, [gizmo], [], port=port, camera=False)
     app.start()
     try:
         time.sleep(0.5)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from teleop.web import headless
+from tests import browser as headless
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = {"steps": [

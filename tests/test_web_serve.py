@@ -19,7 +19,7 @@ import pytest
 
 import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
 
-from teleop.web import headless  # noqa: E402
+from tests import browser as headless  # noqa: E402
 
 
 REPO = Path(__file__).resolve().parents[1]

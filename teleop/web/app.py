@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
 from pathlib import Path
 
@@ -23,6 +22,8 @@ import mujoco
 import numpy as np
 import viser
 
+from devices.base import SpeedControlled
+from replay import VerifyResult
 from teleop.errors import UsageError
 from teleop.session import Session
 from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
@@ -44,7 +45,6 @@ class WebApp:
         device_problems: list[str],
         host: str = "127.0.0.1",
         port: int = 8080,
-        verify: bool = True,
         status_file: Path | None = None,
         pos_speed: float = 0.15,
         rot_speed: float = 0.8,
@@ -55,22 +55,17 @@ class WebApp:
         self.devices = list(devices)
         self.device_problems = list(device_problems)
         self.host, self.port = host, port
-        self.verify = verify
         self.status_file = status_file
         self.log = log
         self.camera_size = IMAGE_SIZE
-        self.verified: dict[str, bool | None] = {}  # episode file -> replays bit for bit (None: checking)
         self.last_saved: Path | None = None
         self._messages: list[str] = []
         self._status_due = 0.0
         self._closed = False
         self.url = page_url(host, port)
 
-        if session.record is not None:
-            # Imported here, not on the first click on Record: importing (h5py, mcap) takes a
-            # quarter of a second, which the control loop would otherwise spend stalled.
-            import recorder  # noqa: F401
-            import replay  # noqa: F401
+        if session.recorder is not None:
+            session.recorder.on_verified = self._on_verified
         check_port_free(host, port)
         self.server = viser.ViserServer(host=host, port=port, label="teleop", verbose=False)
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
@@ -116,7 +111,8 @@ class WebApp:
             self.camera.stop()
         self.drawer.stop()
         self.sim.stop()
-        before = len(self.session.saved_paths)
+        recorder = self.session.recorder
+        before = len(recorder.paths) if recorder is not None else 0
         try:
             self.session.close()
         finally:
@@ -127,7 +123,7 @@ class WebApp:
                     pass
             self.write_status()
             self.server.stop()
-        return list(self.session.saved_paths[before:])
+        return list(recorder.paths[before:]) if recorder is not None else []
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the control loop ends (an error) or `timeout`; True if it ended."""
@@ -153,11 +149,11 @@ class WebApp:
     def set_speeds(self, pos_speed: float | None = None, rot_speed: float | None = None) -> None:
         """Panel sliders: hold-to-move speeds of every keyboard and SpaceMouse."""
         for device in self.devices:
-            if device.kind in ("gizmo", "script"):
+            if not isinstance(device, SpeedControlled):
                 continue
-            if pos_speed is not None and hasattr(device, "pos_speed"):
+            if pos_speed is not None:
                 device.pos_speed = pos_speed
-            if rot_speed is not None and hasattr(device, "rot_speed"):
+            if rot_speed is not None:
                 device.rot_speed = rot_speed
 
     def note(self, message: str) -> None:
@@ -168,30 +164,24 @@ class WebApp:
     def notes(self) -> list[str]:
         return [*self.session.messages[-5:], *self._messages[-5:]]
 
+    @property
+    def verified(self) -> dict[str, bool | None]:
+        """Episode file -> replays bit for bit (None: still checking)."""
+        recorder = self.session.recorder
+        return dict(recorder.verified) if recorder is not None else {}
+
     def _on_saved(self, paths: list[Path]) -> None:
-        """Called in the control loop when episodes were saved: check exact replay elsewhere."""
+        """Called in the control loop when episodes were saved (the recorder checks them in the background)."""
         if not paths:
             return
-        first = paths[0]
-        self.last_saved = Path(first)
+        self.last_saved = Path(paths[0])
         self.log(f"saved {', '.join(str(p) for p in paths)}")
-        if not self.verify:
-            return
-        self.verified[str(first)] = None
-        threading.Thread(target=self._verify, args=(first,), name="teleop-verify", daemon=True).start()
 
-    def _verify(self, path: Path) -> None:
-        from replay import verify_file
-
-        try:
-            result = verify_file(path, warn=False)
-            ok = bool(result.bit_exact)
-            self.verified[str(path)] = ok
-            if not ok:
-                self.note(f"{path.name} did not replay exactly (first difference at step {result.first_divergence_step})")
-        except Exception as exc:  # noqa: BLE001 - reported on the page
-            self.verified[str(path)] = False
-            self.note(f"{path.name}: replay check failed: {exc}")
+    def _on_verified(self, path: Path, result: VerifyResult | None) -> None:
+        if result is None:
+            self.note(f"{path.name}: the replay check could not run")
+        elif not result.bit_exact:
+            self.note(f"{path.name} did not replay exactly (first difference at step {result.first_divergence_step})")
 
     def last_saved_line(self) -> str:
         """The newest saved episode and whether it replays exactly, for the panel."""
@@ -231,8 +221,9 @@ class WebApp:
             "episode_steps": snap.episode_steps,
             "episodes_saved": snap.episodes_saved,
             "episodes_discarded": snap.episodes_discarded,
-            "saved_files": [str(p) for p in session.saved_paths],
-            "verified": dict(self.verified),
+            "saved_files": [str(p) for p in session.recorder.paths] if session.recorder is not None else [],
+            "verified": self.verified,
+            "recording_error": snap.recording_error,
             "success": snap.success,
             "ee_pos": [[round(float(v), 6) for v in p] for p, _ in snap.ee],
             "target_pos": [[round(float(v), 6) for v in p] for p, _ in snap.targets],
@@ -245,7 +236,7 @@ class WebApp:
             "web_update_ms": round(self.drawer.update_ms(), 3),
             "web_updates": self.drawer.updates,
             "latency_ms": None if self.drawer.latency_ms is None else round(self.drawer.latency_ms, 2),
-            "gizmo_drags": getattr(self.gizmo, "drags", 0),
+            "gizmo_drags": self.gizmo.drags if self.gizmo is not None else 0,
             "camera_frames": self.camera.frames if self.camera is not None else 0,
             "camera_problem": self.camera.problem if self.camera is not None else None,
             "devices": {d.name: self.sim.device_problems.get(d.name) or d.status() for d in self.devices},

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from replay.errors import first_line
+from scenes.errors import first_line
 from teleop.web.loop_thread import LoopThread
 
 IMAGE_SIZE = (192, 144)  # width, height

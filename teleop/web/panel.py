@@ -15,7 +15,7 @@ import time
 import numpy as np
 import viser
 
-from teleop.command import Command
+from devices.command import Command
 from teleop.web.loop_thread import LoopThread
 
 REFRESH_HZ = 4.0
@@ -80,7 +80,7 @@ class Panel(LoopThread):
         self._init_thread("teleop-panel")
         gui = server.gui
         snap = app.sim.snapshot
-        recording_on = app.session.record is not None
+        recording_on = app.session.recorder is not None
 
         self.task_md = gui.add_markdown(self._task_text(snap))
         with gui.add_folder("Episode"):
@@ -173,13 +173,17 @@ class Panel(LoopThread):
 
     def _episode_text(self, snap) -> str:
         app = self.app
-        if app.session.record is None:
+        recorder = app.session.recorder
+        if recorder is None:
             head = "Not recording: start with `--record DIR` to record episodes."
         elif snap.recording:
             head = f"**● Recording** step {snap.episode_steps} ({snap.episode_steps * app.session.dt:.1f} s)"
         else:
-            head = f"Ready to record into `{app.session.record.directory}`"
-        lines = [head, f"Saved: **{snap.episodes_saved}** · Discarded: **{snap.episodes_discarded}**"]
+            head = f"Ready to record into `{recorder.directory}`"
+        lines = [head]
+        if snap.recording_error and not snap.recording:
+            lines.append(f"**Recording stopped:** {snap.recording_error}")
+        lines += [f"Saved: **{snap.episodes_saved}** · Discarded: **{snap.episodes_discarded}**"]
         last = app.last_saved_line()
         if last:
             lines.append(last)

@@ -7,11 +7,10 @@ figures the page shows) that drawing, camera and panel threads read without
 any lock, so the physics MjData is touched by nothing but ctrl and mj_step:
 that is what keeps recordings exactly replayable, however many browsers watch.
 
-The loop sleeps to an absolute schedule, so short stalls (another thread
-holding the GIL, a busy machine) are caught up and simulated time keeps pace
-with the wall clock. Only when it falls behind by more than a second (a
-suspended laptop) does it drop the lost time instead of stepping in a long
-burst, and count the slip.
+The ticks run through the one episode loop (`teleop.loop.run_episode`),
+paced to the wall clock on an absolute schedule (`teleop.loop.Pacer`): short
+stalls are caught up, a lag over a second is dropped and counted as a slip.
+Episodes start and end by the operator's events, not by the loop.
 """
 
 from __future__ import annotations
@@ -27,11 +26,11 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from replay.errors import first_line
+from teleop.controller import StepResult
+from teleop.loop import Pacer, newest_input_time, poll_devices, run_episode
 from teleop.session import Session
 from teleop.web.loop_thread import LoopThread
 
-MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 RATE_WINDOW_S = 1.0
 
 
@@ -53,6 +52,7 @@ class Snapshot:
     gripper_open: tuple[bool, ...]
     success: bool
     recording: bool
+    recording_error: str | None  # why recording stopped by itself (a full disk), one line
     episode_steps: int
     episodes_saved: int
     episodes_discarded: int
@@ -88,9 +88,9 @@ class SimThread(LoopThread):
         self._tick_times: collections.deque[float] = collections.deque()
         self._compute_s: collections.deque[float] = collections.deque(maxlen=300)
         self._input_time = 0.0
-        self._saved_seen = len(session.saved_paths)
-        self.slips = 0
-        self.max_late_s = 0.0  # worst lateness of a tick against the schedule
+        self._saved_seen = len(session.recorder.paths) if session.recorder is not None else 0
+        self._tick_start = 0.0
+        self.pacer = Pacer(session.dt, self._stop)
         self.sim_seconds = 0.0  # simulated time stepped by this loop (survives resets)
         self.wall_started = 0.0
         self.error: str | None = None
@@ -115,10 +115,20 @@ class SimThread(LoopThread):
         if self._thread.is_alive():
             raise RuntimeError("the control loop is running")
         with self.lock:
-            self._run_actions()
-            self._tick()
-            self.snapshot = self._snapshot()
+            self._before_tick(self.session)
+            result = self.session.step(poll_devices(self.session, self.devices, self.device_problems))
+            self._after_tick(self.session, result)
         return self.snapshot
+
+    @property
+    def slips(self) -> int:
+        """Times the loop fell more than a second behind and dropped the lag."""
+        return self.pacer.slips
+
+    @property
+    def max_late_s(self) -> float:
+        """Worst lateness of a tick against the schedule, s."""
+        return self.pacer.max_late_s
 
     # -- figures ---------------------------------------------------------
     def loop_hz(self) -> float:
@@ -145,32 +155,14 @@ class SimThread(LoopThread):
 
     # -- the loop ----------------------------------------------------------
     def _run(self) -> None:
-        period = self.session.dt
-        next_tick = time.perf_counter()
+        self.pacer = Pacer(self.session.dt, self._stop)
+        self.pacer.next_tick = time.perf_counter()
         try:
-            while not self._stop.is_set():
-                start = time.perf_counter()
-                with self.lock:
-                    self._run_actions()
-                    self._tick()
-                    snapshot = self._snapshot()
-                self.snapshot = snapshot
-                now = time.perf_counter()
-                self._compute_s.append(now - start)
-                stamp = time.monotonic()
-                self._tick_times.append(stamp)
-                while self._tick_times and stamp - self._tick_times[0] > RATE_WINDOW_S:
-                    self._tick_times.popleft()
-                period = self.session.dt
-                next_tick += period
-                delay = next_tick - time.perf_counter()
-                if delay > 0:
-                    self._stop.wait(delay)
-                else:
-                    self.max_late_s = max(self.max_late_s, -delay)
-                    if delay < -MAX_LAG_S:
-                        self.slips += 1
-                        next_tick = time.perf_counter()
+            run_episode(
+                self.session, self.devices, realtime=True, pacer=self.pacer, stop=self._stop, record=False,
+                stop_on_script_end=False, broken_devices=self.device_problems, guard=self.lock,
+                before_tick=self._before_tick, after_tick=self._after_tick,
+            )
         except Exception as exc:  # noqa: BLE001 - reported on the page and by the CLI
             self.error = f"{type(exc).__name__}: {exc}"
             self.log("control loop stopped: " + self.error)
@@ -178,6 +170,23 @@ class SimThread(LoopThread):
         finally:
             with self.lock:
                 self._run_actions()
+
+    def _before_tick(self, session: Session) -> None:
+        self._tick_start = time.perf_counter()
+        self._run_actions()
+
+    def _after_tick(self, session: Session, result: StepResult) -> None:
+        # Devices that stamp their input (the browser gizmo) let the page show input-to-display latency.
+        self._input_time = max(self._input_time, newest_input_time(self.devices))
+        self.sim_seconds += session.dt
+        self._ticks += 1
+        self._check_saved()
+        self.snapshot = self._snapshot()
+        self._compute_s.append(time.perf_counter() - self._tick_start)
+        stamp = time.monotonic()
+        self._tick_times.append(stamp)
+        while self._tick_times and stamp - self._tick_times[0] > RATE_WINDOW_S:
+            self._tick_times.popleft()
 
     def _run_actions(self) -> None:
         while True:
@@ -191,26 +200,9 @@ class SimThread(LoopThread):
                 self.session.note(f"{type(exc).__name__}: {exc}")
             self._check_saved()
 
-    def _tick(self) -> None:
-        session = self.session
-        commands = []
-        for device in self.devices:
-            if device.name in self.device_problems:
-                continue
-            try:
-                commands.extend(device.poll(session, session.dt))
-            except Exception as exc:  # noqa: BLE001 - one broken device must not stop the others
-                self.device_problems[device.name] = first_line(exc)
-                session.note(f"{device.name} stopped: {self.device_problems[device.name]}")
-        # Devices that stamp their input (the browser gizmo) let the page show input-to-display latency.
-        self._input_time = max([self._input_time, *(getattr(d, "last_input_time", 0.0) for d in self.devices)])
-        session.step(commands)
-        self.sim_seconds += session.dt
-        self._ticks += 1
-        self._check_saved()
-
     def _check_saved(self) -> None:
-        paths = self.session.saved_paths
+        recorder = self.session.recorder
+        paths = recorder.paths if recorder is not None else []
         if len(paths) > self._saved_seen:
             new = list(paths[self._saved_seen:])
             self._saved_seen = len(paths)
@@ -223,7 +215,7 @@ class SimThread(LoopThread):
             self._model = s.model
             self._generation += 1
         data = s.data
-        writer = s.writer
+        recorder = s.recorder
         return Snapshot(
             tick=self._ticks,
             generation=self._generation,
@@ -238,10 +230,11 @@ class SimThread(LoopThread):
             tracking_error_m=(s.tracking_errors[-1].copy() if s.tracking_errors else np.zeros(s.n_arms)),
             gripper_open=tuple(a.gripper_open for a in s.arms),
             success=bool(s.success()),
-            recording=writer is not None,
-            episode_steps=int(writer.steps) if writer is not None else 0,
-            episodes_saved=s.episodes_saved,
-            episodes_discarded=s.episodes_discarded,
+            recording=recorder is not None and recorder.recording,
+            recording_error=recorder.error if recorder is not None else None,
+            episode_steps=recorder.steps if recorder is not None else 0,
+            episodes_saved=recorder.episodes_saved if recorder is not None else 0,
+            episodes_discarded=recorder.episodes_discarded if recorder is not None else 0,
             ik_failures=s.ik_failures,
             input_time=self._input_time,
         )

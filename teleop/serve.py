@@ -1,0 +1,91 @@
+"""`serve`: a session in the browser until Ctrl-C, for `teleop serve` and for scripts.
+
+The recorder attached to the session (if any) is switched to the browser's
+policy: exact-replay checks run in the background so saving never stalls the
+real-time loop, and a write error stops recording while driving goes on.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from devices.base import Device
+from devices.registry import DeviceOptions, open_devices
+from teleop.session import Session
+from teleop.web.app import WebApp
+from teleop.web.net import check_port_free, exposure_warning
+
+DEFAULT_DEVICES = ("gizmo", "keyboard", "spacemouse")  # also teleop serve's --device default
+
+
+def serve(
+    session: Session,
+    devices: Sequence[str | Device] = DEFAULT_DEVICES,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    pos_speed: float = 0.15,
+    rot_speed: float = 0.8,
+    status_file: Path | None = None,
+    problems: Sequence[str] = (),
+    log: Callable[[str], None] = print,
+) -> int:
+    """Serve `session` at http://host:port until Ctrl-C (or SIGTERM); returns 0, or 1 if the loop failed.
+
+    devices: spec words ("gizmo", "keyboard", "spacemouse[:N...]", "script:FILE")
+    and/or started Device objects; words that cannot start are listed on the page.
+    pos_speed / rot_speed: hold-to-move speeds (m/s, rad/s) for keyboard and SpaceMouse.
+    An episode in progress at the end is saved, marked incomplete.
+    """
+    check_port_free(host, port)
+    words = [d for d in devices if isinstance(d, str)]
+    started = [d for d in devices if not isinstance(d, str)]
+    problems = list(problems)
+    if words:
+        options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
+        opened, failed = open_devices(",".join(words), options, require_any=False, require_known=True)
+        started += opened
+        problems += failed
+    recorder = session.recorder
+    if recorder is not None:
+        recorder.on_error = "stop"
+        if recorder.verify == "sync":
+            recorder.verify = "background"
+    try:
+        app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
+                     pos_speed=pos_speed, rot_speed=rot_speed, log=log)
+    except BaseException:
+        for d in started:
+            d.close()
+        raise
+    warning = exposure_warning(host, port)
+    if warning:
+        print(warning, file=sys.stderr)
+    app.start()
+    where = f", recording into {recorder.directory}" if recorder is not None else " (not recording: add --record DIR)"
+    log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
+    log(f"open {app.url} in a browser (Ctrl-C to stop)")
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started in the background with SIGINT ignored
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        app.wait()
+        if app.sim.error:
+            print(f"teleop serve: control loop stopped: {app.sim.error}", file=sys.stderr)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut a file short
+        signal.signal(signal.SIGTERM, previous)
+        saved = app.close()
+    for path in saved:
+        log(f"saved {path} (incomplete: stopped mid-episode)")
+    snap = app.sim.snapshot
+    log(f"teleop serve: stopped; episodes saved {snap.episodes_saved}, discarded {snap.episodes_discarded}")
+    return 1 if app.sim.error else 0
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
