@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
 from rich.console import Console
+
+from teleop.json_output import json_stdout, print_json
 
 MODULES = ("control", "recording", "web", "export", "devices")
 
@@ -43,12 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"bench: error: unknown bench {','.join(unknown)} (benches: {', '.join(MODULES)})", file=sys.stderr)
         return 2
-    results = run_all(quick=args.quick, only=only, progress=True)
     if args.json:
-        print(json.dumps(results))
-    else:
-        for key, value in results.items():
-            print(f"{key:<28} {value}")
+        with json_stdout():  # viser's banner and anything else printed go to stderr
+            print_json(run_all(quick=args.quick, only=only, progress=True))
+        return 0
+    results = run_all(quick=args.quick, only=only, progress=True)
+    for key, value in results.items():
+        print(f"{key:<28} {value}")
     return 0
 
 

@@ -294,7 +294,7 @@ class KeyboardDevice:
         held, presses = self.keys.take(time.monotonic())
         events: list[str] = []
         grippers = 0
-        n_arms = max(int(view.n_arms or 1), 1)
+        n_arms = max(int(view.n_arms), 1) if view is not None else self.n_arms  # None: polled without a session (bench)
         for name in presses:
             action = KEY_ACTION[name]
             if action == "gripper":

@@ -388,3 +388,60 @@ def hdf5_datasets(layout: StepLayout) -> tuple[Hdf5Dataset, ...]:
     """The per-step datasets an episode with this layout has."""
     present = {name for name, _ in layout.fields}
     return tuple(d for d in HDF5_DATASETS if d.field in present)
+
+
+# -- the same codec over plain metadata mappings (what the sinks and readers pass around) ------
+
+BINARY_META_KEYS = ("model_xml", "assets")  # metadata stored as files (attachments, datasets), not JSON
+
+
+def n_arms_of(meta: Mapping[str, Any]) -> int:
+    """Number of arms a metadata mapping describes: its n_arms, else its robot spec's arms, else 1."""
+    if "n_arms" in meta:
+        return int(meta["n_arms"])
+    spec = meta.get("robot_spec") or {}
+    return len(spec.get("arms", [])) or 1
+
+
+def layout_of(meta: Mapping[str, Any]) -> StepLayout:
+    """The step layout a metadata mapping describes."""
+    return StepLayout(int(meta["nstate"]), int(meta["nu"]), n_arms_of(meta), int(meta["nq"]), int(meta["nv"]),
+                      bool(meta.get("records_control", False)))
+
+
+def layout_from_meta(meta: Mapping[str, Any]) -> list[tuple[str, int]]:
+    """(field, size) in row order for a metadata mapping."""
+    return layout_of(meta).fields
+
+
+def step_layout(nstate: int, nu: int, n_arms: int, nq: int, nv: int) -> list[tuple[str, int]]:
+    return StepLayout(nstate, nu, n_arms, nq, nv).fields
+
+
+def slices(layout: list[tuple[str, int]]) -> dict[str, slice]:
+    """Column slice of each field within a row, for a (field, size) list."""
+    out: dict[str, slice] = {}
+    start = 0
+    for name, size in layout:
+        out[name] = slice(start, start + size)
+        start += size
+    return out
+
+
+def row_width(layout: list[tuple[str, int]]) -> int:
+    return sum(size for _, size in layout)
+
+
+def split_rows(rows: np.ndarray, layout: list[tuple[str, int]], n_arms: int) -> dict[str, np.ndarray]:
+    """(T, width) rows -> named arrays (views): time/wall_time (T,), ee_* (T, n_arms, 7), others (T, n)."""
+    sizes = dict(layout)
+    codec = StepLayout(sizes["state"], sizes["ctrl"], n_arms, sizes["qpos"], sizes["qvel"], "control" in sizes)
+    return codec.split(rows)
+
+
+def encode_meta(meta: Mapping[str, Any]) -> dict[str, str]:
+    """MCAP metadata form of a metadata mapping: every JSON-able key, JSON-encoded."""
+    return encode_mcap_meta({k: v for k, v in meta.items() if k not in BINARY_META_KEYS})
+
+
+decode_meta = decode_mcap_meta

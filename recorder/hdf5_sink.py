@@ -34,7 +34,7 @@ import numpy as np
 
 from recorder.robomimic_obs import Recorded, obs_pairs
 from recorder.rollback_file import RollbackFile
-from replay import schema
+from recorder import format as schema
 
 DEMO = "data/demo_0"
 _CHUNK_ROWS = 256

@@ -2,7 +2,7 @@
 
 Channels (all messages of one step share log_time = episode start wall clock +
 sim time since the first step, so the timeline runs at sim rate):
-  /teleop/step        teleop.step.v1 binary rows (see replay.schema)
+  /teleop/step        teleop.step.v1 binary rows (see recorder.format)
   /teleop/commands    JSON {"step", "commands"} when a device sent anything
   /tf/armN/ee         foxglove.FrameTransform world -> armN/ee (actual pose)
   /tf/armN/ee_target  foxglove.FrameTransform world -> armN/ee_target
@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from replay import schema
+from recorder import format as schema
 
 _TIME_SCHEMA = {
     "type": "object",

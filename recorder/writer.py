@@ -29,7 +29,7 @@ import numpy as np
 from recorder.hdf5_sink import ALONGSIDE_MCAP_PERIOD, WRITE_PERIOD, Hdf5Sink
 from recorder.mcap_sink import McapSink
 from recorder.step import StepRecord, pack_into
-from replay import schema
+from recorder import format as schema
 from scenes.errors import TeleopError, first_line
 
 FORMATS = ("mcap", "hdf5")

@@ -1,4 +1,4 @@
-"""Reading and replaying recorded episodes (MCAP or HDF5; layout in replay.schema).
+"""Reading and replaying recorded episodes (MCAP or HDF5; layout in recorder.format).
 
 State mode (`replay_states`) restores each recorded state for viewing and
 rendering; action mode (`resimulate`) restores the first state and re-steps the

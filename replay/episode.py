@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata
 
-from replay import schema
+from recorder import format as schema
 from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
 

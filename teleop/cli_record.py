@@ -64,7 +64,7 @@ def _emit(obj: dict, as_json: bool) -> None:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from recorder import recover_mcap
+    from replay.convert import recover_mcap
     from replay import EpisodeError
     from replay.episode import summarize
 
@@ -86,7 +86,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from recorder import convert_episode
+    from replay.convert import convert_episode
     from replay import EpisodeError
 
     try:

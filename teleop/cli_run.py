@@ -214,7 +214,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                           stderr=None, text=True)
     if done.returncode != 0:
         raise UsageError(f"the bench failed (exit {done.returncode}); its output is above")
-    results = json.loads(done.stdout)
+    try:
+        results = json.loads(done.stdout)
+    except ValueError:
+        raise UsageError("the bench printed something other than its figures on stdout") from None
     if args.json:
         print_json(results)
     else:

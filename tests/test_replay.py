@@ -15,7 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 from bench.recording import record_pusher_episode
-from recorder import write_episode
+from replay.convert import write_episode
 from replay import EpisodeError, find_episodes, load_episode, replay_states, resimulate
 from teleop.cli import main
 from tests.conftest import run_cli, run_json

@@ -127,7 +127,7 @@ def test_schema_1_files_still_load_and_replay(recorded, tmp_path):
 
 def test_last_next_obs_is_repeated_when_the_replay_does_not_reproduce_the_recording(recorded, tmp_path):
     """A recording this machine does not reproduce (here: its last state nudged) gets no invented final state."""
-    from recorder.convert import write_episode
+    from replay.convert import write_episode
 
     ep = load_episode(recorded["hdf5"])
     ep.state[-1, 1] += 1e-9  # qpos[0] of the last state (state = time, qpos, qvel, ...)

@@ -15,9 +15,9 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
+from recorder import format as schema
 from recorder.hdf5_sink import Hdf5Sink
 from recorder.mcap_sink import McapSink
-from replay import schema
 from replay.episode import Episode, EpisodeError, load_episode, sniff_format
 from replay.mcap_read import McapScan, iter_records
 
