@@ -78,7 +78,7 @@ case "$first" in
     test)
         shift || true
         debian_test_packages
-        make_venv "test,lerobot"
+        make_venv "test,lerobot,train,cluster"
         robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
         set +e

@@ -13,6 +13,10 @@ Figures (`measure`), on real recordings (lift, Panda, 30 Hz, the scripted pick):
                         default codec), finalize) in dataset frames per second of wall time,
                         best of 2 runs
   export_frames_per_s_av1  the same with --vcodec av1 (LeRobot's default codec), one run
+  export_frames_per_s_workers  the same episodes with --workers 2 (shards in spawned processes,
+                        merged by LeRobot's aggregate_datasets), one run; timed as the single-process
+                        figure is, from when the workers have loaded LeRobot to the merged dataset
+  export_workers_wall_s  that export's whole wall time, worker start-up (spawn, imports) included
 The GL backend is MUJOCO_GL if set, else EGL, else OSMesa (on a CPU both are Mesa llvmpipe).
 The figures are taken in a fresh Python process, set up as `teleop export` sets itself up
 (other benches in the same process would already have loaded OpenGL their own way).
@@ -67,14 +71,21 @@ def render_rate(path: Path, cameras: list[str], settings, frames: int | None = N
     return statistics.median(best)
 
 
-def export_rate(paths: list[Path], out: Path, vcodec: str | None = None) -> float:
+def export_rate(paths: list[Path], out: Path, vcodec: str | None = None, workers: int = 1) -> float:
+    return export_run(paths, out, vcodec, workers)[0]
+
+
+def export_run(paths: list[Path], out: Path, vcodec: str | None = None, workers: int = 1) -> tuple[float, float]:
+    """(frames/s as the export's summary times it, wall seconds of the whole call)."""
     from replay.export import ExportOptions, export_dataset
 
     opts = ExportOptions(
-        out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False
+        out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False,
+        workers=workers,
     )
+    t0 = time.perf_counter()
     summary = export_dataset(paths, opts, log=lambda line: None)
-    return summary.frames_per_s
+    return summary.frames_per_s, time.perf_counter() - t0
 
 
 def measure(quick: bool) -> dict[str, float]:
@@ -107,6 +118,9 @@ def _measure(quick: bool) -> dict[str, float]:
         runs = [export_rate(paths, tmp / f"dataset{i}") for i in range(1 if quick else 2)]
         out["export_frames_per_s"] = round(max(runs), 1)
         out["export_frames_per_s_av1"] = round(export_rate(paths, tmp / "dataset_av1", vcodec="av1"), 1)
+        rate, wall = export_run(paths, tmp / "dataset_workers", workers=2)
+        out["export_frames_per_s_workers"] = round(rate, 1)
+        out["export_workers_wall_s"] = round(wall, 1)
     return out
 
 

@@ -40,6 +40,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from recorder.format import ArmMeta, EpisodeMeta
+
 SUBSTEPS = 25
 TIMESTEP = 0.002
 
@@ -77,37 +79,33 @@ def pusher_xml(n_boxes: int = 9) -> str:
 
 
 def episode_meta(model: mujoco.MjModel, xml: str, index: int, seed: int, substeps: int, *,
-                 scene: str = "pusher", robot_spec: dict | None = None, assets: dict | None = None) -> dict:
+                 scene: str = "pusher", arms: tuple[ArmMeta, ...] | None = None,
+                 assets: dict | None = None) -> EpisodeMeta:
     """Metadata the way the session fills it, for a model built here."""
-    robot_spec = robot_spec or {
-        "name": "pusher",
-        "arms": [{"ee_site": "ee", "joints": ["px", "py"], "actuators": ["ax", "ay"], "gripper_actuator": None,
-                  "gripper_open": None, "gripper_closed": None, "home": [0.0, 0.0]}],
-    }
-    return {
-        "schema_version": 1,
-        "scene": scene,
-        "robot": robot_spec["name"],
-        "robot_spec": robot_spec,
-        "model_xml": xml,
-        "assets": assets or {},
-        "mujoco_version": mujoco.__version__,
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "python_version": sys.version.split()[0],
-        "seed": seed,
-        "control_hz": 1.0 / (model.opt.timestep * substeps),
-        "timestep": model.opt.timestep,
-        "substeps": substeps,
-        "task": "push the boxes",
-        "cameras": [],
-        "nstate": mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION),
-        "nq": model.nq,
-        "nv": model.nv,
-        "nu": model.nu,
-        "start_time": datetime.now(timezone.utc).isoformat(),
-        "episode_index": index,
-    }
+    arms = arms or (ArmMeta(ee_site="ee", joints=("px", "py"), actuators=("ax", "ay"), home=(0.0, 0.0)),)
+    return EpisodeMeta(
+        scene=scene,
+        robot="pusher",
+        arms=arms,
+        nstate=mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION),
+        nq=model.nq,
+        nv=model.nv,
+        nu=model.nu,
+        control_hz=1.0 / (model.opt.timestep * substeps),
+        timestep=model.opt.timestep,
+        substeps=substeps,
+        seed=seed,
+        task="push the boxes",
+        model_xml=xml,
+        assets=assets or {},
+        mujoco_version=mujoco.__version__,
+        platform=platform.platform(),
+        machine=platform.machine(),
+        python_version=sys.version.split()[0],
+        start_time=datetime.now(timezone.utc).isoformat(),
+        episode_index=index,
+        source="script",
+    )
 
 
 def pusher_ctrl(k: int, seed: int, dt: float) -> np.ndarray:

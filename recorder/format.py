@@ -26,12 +26,16 @@ Metadata
 field JSON-encoded (model XML and assets are attachments: MODEL_ATTACHMENT and
 ASSET_PREFIX + name); a record META_END_NAME with the outcome (success,
 complete, steps) is written at close; a file without it was cut short. HDF5
-(robomimic layout): data/demo_0 attribute `teleop_meta` (JSON, written at close
-with the final outcome), `model_file` (XML), assets as uint8 datasets under
-data/demo_0/assets with attr `name`; datasets in `HDF5_DATASETS`.
+(robomimic layout): data/demo_0 attribute `teleop_meta` (JSON, every field but
+the outcome), the outcome once as demo attrs success/complete/num_samples
+(`closed` false: the file was cut short), `model_file` (XML), assets as uint8
+datasets under data/demo_0/assets with attr `name`, `data.attrs["env_args"]`
+from `EpisodeMeta.env_json`; per-step datasets in `HDF5_DATASETS`.
 
-Schema version 1 files (before this module) load through `EpisodeMeta.from_json`,
-which migrates their keys.
+Schema version 1 files (before this module) load through `EpisodeMeta.from_json`
+(`meta_from_mcap` / `meta_from_hdf5` add the outcome): their keys are the same,
+`source` was not recorded (read as "human"), and HDF5 also copied the outcome
+into `teleop_meta` and `env_args` at close.
 """
 
 from __future__ import annotations
@@ -390,58 +394,27 @@ def hdf5_datasets(layout: StepLayout) -> tuple[Hdf5Dataset, ...]:
     return tuple(d for d in HDF5_DATASETS if d.field in present)
 
 
-# -- the same codec over plain metadata mappings (what the sinks and readers pass around) ------
-
-BINARY_META_KEYS = ("model_xml", "assets")  # metadata stored as files (attachments, datasets), not JSON
+# -- reading a file's metadata back -------------------------------------------
 
 
-def n_arms_of(meta: Mapping[str, Any]) -> int:
-    """Number of arms a metadata mapping describes: its n_arms, else its robot spec's arms, else 1."""
-    if "n_arms" in meta:
-        return int(meta["n_arms"])
-    spec = meta.get("robot_spec") or {}
-    return len(spec.get("arms", [])) or 1
+def meta_from_mcap(start: Mapping[str, Any], end: Mapping[str, Any] | None, model_xml: str,
+                   assets: Mapping[str, bytes]) -> EpisodeMeta:
+    """An MCAP episode's metadata from its start and end records (no end record: cut short)."""
+    merged = dict(start)
+    merged.update(end if end else {"success": False, "complete": False})
+    return EpisodeMeta.from_json(merged, model_xml=model_xml, assets=assets)
 
 
-def layout_of(meta: Mapping[str, Any]) -> StepLayout:
-    """The step layout a metadata mapping describes."""
-    return StepLayout(int(meta["nstate"]), int(meta["nu"]), n_arms_of(meta), int(meta["nq"]), int(meta["nv"]),
-                      bool(meta.get("records_control", False)))
+def meta_from_hdf5(teleop_meta: Mapping[str, Any], model_xml: str, assets: Mapping[str, bytes],
+                   success: bool | None, complete: bool | None, closed: bool, steps: int | None) -> EpisodeMeta:
+    """An HDF5 episode's metadata: `teleop_meta` plus the demo's outcome attrs.
 
-
-def layout_from_meta(meta: Mapping[str, Any]) -> list[tuple[str, int]]:
-    """(field, size) in row order for a metadata mapping."""
-    return layout_of(meta).fields
-
-
-def step_layout(nstate: int, nu: int, n_arms: int, nq: int, nv: int) -> list[tuple[str, int]]:
-    return StepLayout(nstate, nu, n_arms, nq, nv).fields
-
-
-def slices(layout: list[tuple[str, int]]) -> dict[str, slice]:
-    """Column slice of each field within a row, for a (field, size) list."""
-    out: dict[str, slice] = {}
-    start = 0
-    for name, size in layout:
-        out[name] = slice(start, start + size)
-        start += size
-    return out
-
-
-def row_width(layout: list[tuple[str, int]]) -> int:
-    return sum(size for _, size in layout)
-
-
-def split_rows(rows: np.ndarray, layout: list[tuple[str, int]], n_arms: int) -> dict[str, np.ndarray]:
-    """(T, width) rows -> named arrays (views): time/wall_time (T,), ee_* (T, n_arms, 7), others (T, n)."""
-    sizes = dict(layout)
-    codec = StepLayout(sizes["state"], sizes["ctrl"], n_arms, sizes["qpos"], sizes["qvel"], "control" in sizes)
-    return codec.split(rows)
-
-
-def encode_meta(meta: Mapping[str, Any]) -> dict[str, str]:
-    """MCAP metadata form of a metadata mapping: every JSON-able key, JSON-encoded."""
-    return encode_mcap_meta({k: v for k, v in meta.items() if k not in BINARY_META_KEYS})
-
-
-decode_meta = decode_mcap_meta
+    An attr given as None is absent from the file: the value schema 1 copied into
+    `teleop_meta` at close is used. A file never closed reads as cut short.
+    """
+    merged = dict(teleop_meta)
+    for key, attr in (("success", success), ("complete", complete)):
+        merged[key] = closed and bool(merged.get(key, False) if attr is None else attr)
+    if closed and steps is not None:
+        merged["steps"] = int(steps)
+    return EpisodeMeta.from_json(merged, model_xml=model_xml, assets=assets)

@@ -6,7 +6,7 @@ Here `states` is the full mjSTATE_INTEGRATION vector (not robosuite's
 [time, qpos, qvel], which cannot replay exactly) and `actions` is ctrl. The extra
 datasets (ctrl, time, wall_time, ee_target, ee_pose, gripper, commands) and the
 `teleop_meta` JSON attr carry what exact replay and inspection need.
-Each fact is stored once: `env_args` describes the environment only (ENV_KEYS);
+Each fact is stored once: `env_args` describes the environment only (EpisodeMeta.env_json);
 `teleop_meta` every other metadata key except the outcome; the outcome is the
 demo attrs `success`, `complete` (False until finish() writes the final values,
 and `closed` says it did) and `num_samples`. At finish the robomimic
@@ -27,6 +27,7 @@ import atexit
 import json
 import time
 import weakref
+from dataclasses import fields
 from pathlib import Path
 
 import h5py
@@ -35,16 +36,14 @@ import numpy as np
 from recorder.robomimic_obs import Recorded, obs_pairs
 from recorder.rollback_file import RollbackFile
 from recorder import format as schema
+from recorder.format import EpisodeMeta, Outcome
 
-DEMO = "data/demo_0"
+DEMO = schema.HDF5_DEMO
 _CHUNK_ROWS = 256
 WRITE_PERIOD = 0.5  # s between HDF5 writes; a crash loses at most about this much
 ALONGSIDE_MCAP_PERIOD = 2.0  # s between writes when MCAP records the episode too
-# env_args.env_kwargs: what describes the environment, nothing about one episode's outcome or provenance.
-ENV_KEYS = ("scene", "robot", "robot_spec", "seed", "task", "cameras", "control_hz", "timestep", "substeps",
-            "nstate", "nq", "nv", "nu", "n_arms", "mujoco_version", "machine")
 ENV_TYPE = 0  # not one of robomimic's EnvType values: robomimic cannot rebuild this environment itself
-OUTCOME_KEYS = ("success", "complete", "steps")  # demo attrs success, complete, num_samples
+OUTCOME_KEYS = tuple(f.name for f in fields(Outcome))  # kept out of teleop_meta: demo attrs success, complete, num_samples
 _open_sinks: "weakref.WeakSet[Hdf5Sink]" = weakref.WeakSet()
 
 
@@ -53,11 +52,11 @@ class Hdf5Sink:
 
     format = "hdf5"
 
-    def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], write_period: float = WRITE_PERIOD):
+    def __init__(self, path: Path, meta: EpisodeMeta, write_period: float = WRITE_PERIOD):
         self.path = path
         self.write_period = write_period
-        self._cols = schema.slices(layout)
-        self._n_arms = schema.n_arms_of(meta)
+        self._cols = meta.layout.slices
+        self._n_arms = meta.n_arms
         self._n = 0
         self._pending: list[tuple[np.ndarray, list[str]]] = []
         self._last_write = 0.0
@@ -76,65 +75,51 @@ class Hdf5Sink:
             raise
         _open_sinks.add(self)
 
-    def _setup(self, meta: dict) -> None:
+    def _setup(self, meta: EpisodeMeta) -> None:
         f = self._f
         data = f.create_group("data")
         # Each fact is written once: the environment in env_args, provenance in
         # teleop_meta, the outcome (success, complete, num_samples) as demo attrs
         # that finish() sets to their final values.
-        env_kwargs = {k: meta[k] for k in ENV_KEYS if k in meta}
-        data.attrs["env_args"] = json.dumps({"env_name": meta.get("scene", ""), "type": ENV_TYPE, "env_kwargs": env_kwargs})
+        data.attrs["env_args"] = json.dumps({"env_name": meta.scene, "type": ENV_TYPE, "env_kwargs": meta.env_json()})
         data.attrs["total"] = 0
-        data.attrs["date"] = str(meta.get("start_time", ""))
+        data.attrs["date"] = meta.start_time
         demo = f.create_group(DEMO)
-        demo.attrs["model_file"] = meta["model_xml"]
+        demo.attrs["model_file"] = meta.model_xml
         demo.attrs["num_samples"] = 0
-        demo.attrs["teleop_meta"] = json.dumps(
-            {k: v for k, v in meta.items() if k not in schema.BINARY_META_KEYS and k not in OUTCOME_KEYS}
-        )
-        spec = meta.get("robot_spec") or {}
+        demo.attrs["teleop_meta"] = json.dumps({k: v for k, v in meta.to_json().items() if k not in OUTCOME_KEYS})
         self._sim = {  # what finish() needs to build robomimic's next_obs (robomimic_obs.Recorded)
-            "model_xml": meta["model_xml"],
-            "assets": dict(meta.get("assets") or {}),
-            "timestep": float(meta.get("timestep") or 0.0),
-            "substeps": int(meta.get("substeps") or 1),
-            "ee_sites": [str(a.get("ee_site", "")) for a in spec.get("arms") or ()],
+            "model_xml": meta.model_xml,
+            "assets": dict(meta.assets),
+            "timestep": meta.timestep,
+            "substeps": meta.substeps,
+            "ee_sites": [arm.ee_site for arm in meta.arms],
         }
-        for key in ("scene", "robot", "seed", "task", "mujoco_version", "schema_version"):
-            if key in meta and meta[key] is not None:
-                demo.attrs[key] = meta[key]
+        for key, value in (("scene", meta.scene), ("robot", meta.robot), ("seed", meta.seed), ("task", meta.task),
+                           ("mujoco_version", meta.mujoco_version), ("schema_version", meta.schema_version)):
+            demo.attrs[key] = value
         demo.attrs["success"] = False
         demo.attrs["complete"] = False
         demo.attrs["closed"] = False  # True only once close() finished the file
         assets = demo.create_group("assets")
-        for i, (name, blob) in enumerate((meta.get("assets") or {}).items()):
+        for i, (name, blob) in enumerate(meta.assets.items()):
             ds = assets.create_dataset(f"{i:04d}", data=np.frombuffer(bytes(blob), dtype=np.uint8))
             ds.attrs["name"] = name
-        c = self._cols
-        width = {k: s.stop - s.start for k, s in c.items()}
-        na = self._n_arms
-        # dataset path -> (row field, trailing shape). Duplicates robomimic wants
-        # under another name are soft links, written once.
+        layout = meta.layout
+        # dataset path -> (row field, trailing shape), from the one map in recorder.format.
+        # Duplicates robomimic wants under another name are soft links, written once.
         self._spec: dict[str, tuple[str, tuple[int, ...]]] = {
-            "states": ("state", (width["state"],)),
-            "actions": ("ctrl", (width["ctrl"],)),
-            "time": ("time", ()),
-            "wall_time": ("wall_time", ()),
-            "ee_target": ("ee_target", (na, 7)),
-            "ee_pose": ("ee_pose", (na, 7)),
-            "obs/qpos": ("qpos", (width["qpos"],)),
-            "obs/qvel": ("qvel", (width["qvel"],)),
-            "obs/gripper": ("gripper", (na,)),
+            d.path: (d.field, schema.hdf5_shape(d, layout)) for d in schema.hdf5_datasets(layout)
         }
         self._ds = {}
         for name, (_, shape) in self._spec.items():
             self._ds[name] = demo.create_dataset(
                 name, shape=(0, *shape), maxshape=(None, *shape), dtype="<f8", chunks=(_CHUNK_ROWS, *shape)
             )
-        demo["ctrl"] = h5py.SoftLink(f"/{DEMO}/actions")
-        demo["gripper"] = h5py.SoftLink(f"/{DEMO}/obs/gripper")
+        for link, target in schema.HDF5_LINKS.items():
+            demo[link] = h5py.SoftLink(f"/{DEMO}/{target}")
         self._cmds = demo.create_dataset(
-            "commands", shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(), chunks=(_CHUNK_ROWS,)
+            schema.HDF5_COMMANDS, shape=(0,), maxshape=(None,), dtype=h5py.string_dtype(), chunks=(_CHUNK_ROWS,)
         )
         self._demo, self._data = demo, data
         f.flush()
@@ -171,10 +156,10 @@ class Hdf5Sink:
         self._n = n0 + n
         self._last_write = time.monotonic()
 
-    def finish(self, end_meta: dict) -> None:
+    def finish(self, outcome: Outcome) -> None:
         self.flush(force=True)
         demo = self._demo
-        success, complete = bool(end_meta["success"]), bool(end_meta["complete"])
+        success, complete = outcome.success, outcome.complete
         # robomimic's per-step reward/done: only the last step is known to end the demo.
         dones = np.zeros(self._n, dtype=np.int64)
         rewards = np.zeros(self._n)
@@ -184,12 +169,7 @@ class Hdf5Sink:
         demo.create_dataset("dones", data=dones)
         demo.create_dataset("rewards", data=rewards)
         self._write_obs_pairs()
-        # The outcome lives in the demo attrs only; anything else the end adds is provenance.
-        extra = {k: v for k, v in end_meta.items() if k not in OUTCOME_KEYS}
-        if extra:
-            meta = json.loads(demo.attrs["teleop_meta"])
-            meta.update(extra)
-            demo.attrs["teleop_meta"] = json.dumps(meta)
+        # The outcome lives in the demo attrs only.
         demo.attrs["success"] = success
         demo.attrs["complete"] = complete
         demo.attrs["closed"] = True

@@ -23,6 +23,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from recorder import format as schema
+from recorder.format import EpisodeMeta, Outcome
 
 _TIME_SCHEMA = {
     "type": "object",
@@ -118,28 +119,28 @@ class McapSink:
     yield_s = 50e-6
     yield_every = 4  # rows
 
-    def __init__(self, path: Path, meta: dict, layout: list[tuple[str, int]], t0_ns: int | None = None):
+    def __init__(self, path: Path, meta: EpisodeMeta, t0_ns: int | None = None):
         self.path = path
         self._t0_ns = time.time_ns() if t0_ns is None else t0_ns
         self._file = open(path, "xb")  # never overwrite
         try:
-            self._setup(meta, layout)
+            self._setup(meta)
         except BaseException:
             self.abort()
             path.unlink(missing_ok=True)
             raise
 
-    def _setup(self, meta: dict, layout: list[tuple[str, int]]) -> None:
-        self._layout = layout
-        self._cols = schema.slices(layout)
-        self._n_arms = schema.n_arms_of(meta)
+    def _setup(self, meta: EpisodeMeta) -> None:
+        layout = meta.layout.fields
+        self._cols = meta.layout.slices
+        self._n_arms = meta.n_arms
         self._sim_t0: float | None = None
         self._count = 0
         w = self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
         w.start(profile="", library="teleop-recorder")
-        w.add_metadata(schema.META_NAME, schema.encode_meta(meta))
-        w.add_attachment(0, 0, schema.MODEL_ATTACHMENT, "application/xml", meta["model_xml"].encode())
-        for name, data in (meta.get("assets") or {}).items():
+        w.add_metadata(schema.META_NAME, schema.encode_mcap_meta(meta.to_json()))
+        w.add_attachment(0, 0, schema.MODEL_ATTACHMENT, "application/xml", meta.model_xml.encode())
+        for name, data in meta.assets.items():
             w.add_attachment(0, 0, schema.ASSET_PREFIX + name, "application/octet-stream", bytes(data))
 
         def json_channel(topic: str, schema_name: str, body: dict) -> int:
@@ -160,10 +161,10 @@ class McapSink:
                 ch = json_channel(f"/tf/arm{arm}/{kind}", schema.FRAME_TRANSFORM_SCHEMA, FRAME_TRANSFORM_JSONSCHEMA)
                 self._tf_ch.append((ch, f"arm{arm}/{kind}", "ee_pose" if kind == "ee" else "ee_target", arm))
         self._js_ch = json_channel(schema.JOINT_STATES_TOPIC, schema.JOINT_STATE_SCHEMA, JOINT_STATE_JSONSCHEMA)
-        assets = tuple(sorted((k, bytes(v)) for k, v in (meta.get("assets") or {}).items()))
-        names, qi, vi = _joint_map(meta["model_xml"], assets)
+        assets = tuple(sorted((k, bytes(v)) for k, v in meta.assets.items()))
+        names, qi, vi = _joint_map(meta.model_xml, assets)
         if not names:
-            names = [f"qpos{i}" for i in range(int(meta["nq"]))]
+            names = [f"qpos{i}" for i in range(meta.nq)]
             qi = vi = None
         self._joint_names, self._qi, self._vi = names, qi, vi
         self._names_json = json.dumps(names)
@@ -229,9 +230,9 @@ class McapSink:
         """Close the open chunk and hand everything to the OS (survives kill -9)."""
         self._writer.flush()
 
-    def finish(self, end_meta: dict) -> None:
+    def finish(self, outcome: Outcome) -> None:
         self._writer.flush()  # every message before the end record: a file cut before it reads as incomplete
-        self._writer.add_metadata(schema.META_END_NAME, schema.encode_meta(end_meta))
+        self._writer.add_metadata(schema.META_END_NAME, schema.encode_mcap_meta(outcome.to_json()))
         self._writer.finish()
         self._file.close()
 

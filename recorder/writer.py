@@ -30,6 +30,7 @@ from recorder.hdf5_sink import ALONGSIDE_MCAP_PERIOD, WRITE_PERIOD, Hdf5Sink
 from recorder.mcap_sink import McapSink
 from recorder.step import StepRecord, pack_into
 from recorder import format as schema
+from recorder.format import EpisodeMeta, Outcome
 from scenes.errors import TeleopError, first_line
 
 FORMATS = ("mcap", "hdf5")
@@ -75,35 +76,30 @@ def _commands_json(commands: list) -> str:
     return json.dumps([c if isinstance(c, dict) else c.to_dict() for c in commands])
 
 
-def _check_meta(meta: dict) -> None:
-    missing = [k for k in ("model_xml", "nstate", "nq", "nv", "nu") if k not in meta]
-    if missing:
-        raise RecorderError(f"episode metadata lacks {', '.join(missing)}")
+def _new_episode_meta(meta: EpisodeMeta, index: int) -> EpisodeMeta:
+    """What a new file says at its start: this schema version, this index, no outcome yet."""
+    if not isinstance(meta, EpisodeMeta):
+        raise RecorderError(f"episode metadata must be an EpisodeMeta, got {type(meta).__name__}")
+    if not meta.model_xml:
+        raise RecorderError("episode metadata lacks model_xml")
+    return meta.replace(episode_index=index, schema_version=schema.SCHEMA_VERSION, outcome=Outcome())
 
 
 class EpisodeWriter:
     """Records one episode into directory/episode_{index:06d}.{mcap,hdf5}."""
 
-    def __init__(self, directory: Path, index: int, formats: Sequence[str], meta: dict):
+    def __init__(self, directory: Path, index: int, formats: Sequence[str], meta: EpisodeMeta):
         formats = list(dict.fromkeys(formats))
         bad = [f for f in formats if f not in FORMATS]
         if bad or not formats:
             raise RecorderError(f"formats must be among {FORMATS}, got {list(formats)}")
-        _check_meta(meta)
+        meta = _new_episode_meta(meta, index)
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.index = index
-        meta = dict(meta)
-        meta.setdefault("schema_version", schema.SCHEMA_VERSION)
-        meta.setdefault("episode_index", index)
-        meta.setdefault("substeps", 1)
-        meta["n_arms"] = schema.n_arms_of(meta)
-        meta["success"], meta["complete"] = False, False
-        layout = schema.layout_from_meta(meta)
-        meta["step_layout"] = layout
         self.meta = meta
-        self._width = schema.row_width(layout)
-        self.columns = schema.slices(layout)  # where each field goes in a claimed row
+        self._width = meta.layout.width
+        self.columns = meta.layout.slices  # where each field goes in a claimed row (StepLayout.slices)
         self._sinks: list[McapSink | Hdf5Sink] = []
         for fmt in formats:
             path = episode_path(self.directory, index, fmt)
@@ -113,10 +109,10 @@ class EpisodeWriter:
             path = episode_path(self.directory, index, fmt)
             try:
                 if fmt == "mcap":
-                    self._sinks.append(McapSink(path, meta, layout))
+                    self._sinks.append(McapSink(path, meta))
                 else:
                     period = ALONGSIDE_MCAP_PERIOD if "mcap" in formats else WRITE_PERIOD
-                    self._sinks.append(Hdf5Sink(path, meta, layout, write_period=period))
+                    self._sinks.append(Hdf5Sink(path, meta, write_period=period))
             except FileExistsError:
                 self._drop_files()
                 raise RecorderError(f"{path}: episode file already exists") from None
@@ -180,8 +176,8 @@ class EpisodeWriter:
         if self._error is not None:  # every file keeps what reached it: a cut file reads as incomplete
             self._abort_sinks()
             raise RecorderError(self._why_stopped())
-        end = {"success": bool(success), "complete": bool(complete), "steps": self.steps}
-        self.meta.update(end)
+        self.meta = self.meta.with_outcome(success, complete, self.steps)
+        end = self.meta.outcome
         for sink in self._sinks:
             if self._error is not None:  # an earlier file failed to finish: close this one as it is
                 sink.abort()

@@ -16,12 +16,21 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from recorder import format as schema
+from recorder.format import Outcome
 from recorder.hdf5_sink import Hdf5Sink
 from recorder.mcap_sink import McapSink
 from replay.episode import Episode, EpisodeError, load_episode, sniff_format
 from replay.mcap_read import McapScan, iter_records
 
 TARGET_SUFFIXES = {"mcap": (".mcap",), "hdf5": (".hdf5", ".h5")}
+
+
+class CutShortError(EpisodeError):
+    """The episode to convert was cut short; `recoverable`: recover_mcap can make it whole first."""
+
+    def __init__(self, message: str, recoverable: bool):
+        super().__init__(message)
+        self.recoverable = recoverable
 
 
 def _check_out(out: Path, fmt: str | None = None) -> None:
@@ -32,7 +41,7 @@ def _check_out(out: Path, fmt: str | None = None) -> None:
     if fmt is not None:
         other = [s for f, sfx in TARGET_SUFFIXES.items() if f != fmt for s in sfx]
         if out.suffix.lower() in other:
-            raise EpisodeError(f"{out}: suffix {out.suffix} does not match --to {fmt}")
+            raise EpisodeError(f"{out}: suffix {out.suffix} does not match format {fmt}")
 
 
 def _publish(out: Path, build: Callable[[Path], None]) -> None:
@@ -61,7 +70,7 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict:
     """
     src, out = Path(src), Path(out)
     if sniff_format(src) != "mcap":
-        raise EpisodeError(f"{src}: --recover works on MCAP files only")
+        raise EpisodeError(f"{src}: recovery works on MCAP files only")
     _check_out(out, "mcap")
     stats = {"messages": 0, "steps": 0, "source_truncated": False, "had_end_metadata": False}
 
@@ -93,9 +102,9 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict:
                     w.add_metadata(rec.name, dict(rec.metadata))
                     stats["had_end_metadata"] |= rec.name == schema.META_END_NAME
             if not stats["had_end_metadata"]:
-                end = {"success": False, "complete": False, "steps": stats["steps"], "recovered": True}
+                end = Outcome(success=False, complete=False, steps=stats["steps"], recovered=True)
                 w.flush()
-                w.add_metadata(schema.META_END_NAME, schema.encode_meta(end))
+                w.add_metadata(schema.META_END_NAME, schema.encode_mcap_meta(end.to_json()))
             w.finish()
         stats["source_truncated"] = scan.truncated
 
@@ -104,46 +113,32 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict:
 
 
 def episode_rows(episode: Episode) -> np.ndarray:
-    """The episode's steps back in packed row form (schema.step_layout order)."""
-    T = episode.steps
-    parts = [
-        episode.time.reshape(T, 1),
-        (episode.wall_time if len(episode.wall_time) == T else np.zeros(T)).reshape(T, 1),
-        episode.state,
-        episode.ctrl,
-        episode.ee_target.reshape(T, -1),
-        episode.ee_pose.reshape(T, -1),
-        episode.qpos,
-        episode.qvel,
-        episode.gripper.reshape(T, -1),
-    ]
-    return np.ascontiguousarray(np.concatenate(parts, axis=1), dtype=np.float64)
+    """The episode's steps back in packed row form (the layout's row order)."""
+    columns = {
+        "time": episode.time, "wall_time": episode.wall_time, "state": episode.state, "ctrl": episode.ctrl,
+        "ee_target": episode.ee_target, "ee_pose": episode.ee_pose, "qpos": episode.qpos, "qvel": episode.qvel,
+        "gripper": episode.gripper, "control": episode.control,
+    }
+    return episode.meta.layout.join(columns)
 
 
 def write_episode(episode: Episode, out: str | Path, fmt: str) -> Path:
-    """Write a loaded episode to a new file in `fmt` ("mcap" | "hdf5")."""
+    """Write a loaded episode to a new file in `fmt` ("mcap" | "hdf5"), in the current schema version."""
     out = Path(out)
     if fmt not in TARGET_SUFFIXES:
         raise EpisodeError(f"unknown format {fmt!r}: use mcap or hdf5")
     _check_out(out, fmt)
-    end = {
-        "success": bool(episode.meta.get("success", False)),
-        "complete": bool(episode.meta.get("complete", False)),
-        "steps": episode.steps,
-    }
-    meta = {k: v for k, v in episode.meta.items() if k not in ("steps", "recovered")}
-    meta.update(success=False, complete=False)
-    layout = schema.layout_from_meta(meta)
-    meta["step_layout"] = layout
+    end = Outcome(episode.meta.success, episode.meta.complete, episode.steps)
+    meta = episode.meta.replace(outcome=Outcome(), schema_version=schema.SCHEMA_VERSION)
     rows = episode_rows(episode)
 
     def build(tmp: Path) -> None:
         if fmt == "mcap":
             t0 = int(episode.wall_time[0] * 1e9) if episode.steps and len(episode.wall_time) else None
-            sink = McapSink(tmp, meta, layout, t0_ns=t0)
+            sink = McapSink(tmp, meta, t0_ns=t0)
             sink.yield_s = 0.0  # nothing to share the GIL with
         else:
-            sink = Hdf5Sink(tmp, meta, layout)
+            sink = Hdf5Sink(tmp, meta)
         try:
             sink.write(rows, [json.dumps(c) if c else "[]" for c in episode.commands])
             sink.finish(end)
@@ -164,10 +159,8 @@ def convert_episode(src: str | Path, to: str, out: str | Path) -> dict:
     episode = load_episode(src)
     if episode.truncated:
         if episode.format == "mcap":
-            hint = f"recover it first: teleop inspect {src} --recover OUT"
-        else:
-            hint = "its writer never closed it"
-        raise EpisodeError(f"{src}: file is cut short ({episode.truncated_reason}); {hint}")
+            raise CutShortError(f"{src}: file is cut short ({episode.truncated_reason}); recover it first", True)
+        raise CutShortError(f"{src}: file is cut short ({episode.truncated_reason}); its writer never closed it", False)
     episode.build_model()  # a file whose model does not compile is not worth converting
     write_episode(episode, out, to)
     return {"path": str(out), "format": to, "source": str(src), "steps": episode.steps}

@@ -23,6 +23,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from recorder.format import EpisodeMeta
 from replay.episode import Episode, load_episode
 
 INTEGRATION = int(mujoco.mjtState.mjSTATE_INTEGRATION)
@@ -68,10 +69,10 @@ def state_mask(model: mujoco.MjModel, part: int, whole: int = INTEGRATION) -> np
     return np.array(mask, dtype=bool)
 
 
-def compat_warnings(meta: dict) -> list[str]:
+def compat_warnings(meta: EpisodeMeta) -> list[str]:
     """Why bit-exactness is not promised on this machine (empty when it is)."""
     out = []
-    rec_ver, rec_arch = meta.get("mujoco_version"), meta.get("machine")
+    rec_ver, rec_arch = meta.mujoco_version, meta.machine
     if rec_ver and rec_ver != mujoco.__version__:
         out.append(f"recorded with MuJoCo {rec_ver}, replaying with {mujoco.__version__}: exactness is not promised")
     if rec_arch and rec_arch != platform.machine():

@@ -16,6 +16,8 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata
 
 from recorder import format as schema
+from recorder.annotations import AnnotationError, read_subtasks
+from recorder.format import EpisodeMeta
 from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
 
@@ -32,7 +34,7 @@ class Episode:
 
     path: Path
     format: str  # "mcap" | "hdf5"
-    meta: dict  # recording metadata incl. model_xml, assets, success, complete
+    meta: EpisodeMeta  # what the file says about itself, with the model XML and assets
     time: np.ndarray  # (T,)
     state: np.ndarray  # (T, nstate) mjSTATE_INTEGRATION before each step
     ctrl: np.ndarray  # (T, nu)
@@ -45,6 +47,7 @@ class Episode:
     truncated: bool  # read from a file cut short (no footer / writer never closed it)
     wall_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
     truncated_reason: str = ""
+    control: np.ndarray | None = None  # (T,) who drove each step (CONTROL_HUMAN/POLICY); None if not recorded
 
     @property
     def steps(self) -> int:
@@ -52,25 +55,25 @@ class Episode:
 
     @property
     def substeps(self) -> int:
-        return int(self.meta.get("substeps", 1))
+        return self.meta.substeps
 
     @property
     def seconds(self) -> float:
         """Simulated duration covered by the recorded steps."""
-        dt = float(self.meta.get("timestep", 0.0)) * self.substeps
+        dt = self.meta.timestep * self.substeps
         return self.steps * dt if dt > 0 else float(self.time[-1] - self.time[0]) if self.steps else 0.0
 
     def build_model(self) -> mujoco.MjModel:
         """Compile the recorded model XML with its assets, checked against the recorded state size."""
-        xml = self.meta.get("model_xml")
+        xml = self.meta.model_xml
         if not xml:
             raise EpisodeError(f"{self.path}: no model XML recorded")
         try:
-            model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.get("assets") or {}))
+            model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.assets))
         except Exception as exc:  # noqa: BLE001 - mujoco raises ValueError/Exception variants
             first = first_line(exc)
             raise EpisodeError(f"{self.path}: recorded model XML does not compile: {first}") from None
-        timestep = self.meta.get("timestep")
+        timestep = self.meta.timestep
         if timestep:
             model.opt.timestep = float(timestep)
         need = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION)
@@ -144,7 +147,7 @@ def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
 
 def _load_mcap(path: Path) -> Episode:
     scan = McapScan()
-    meta: dict | None = None
+    start: dict | None = None
     end: dict = {}
     assets: dict[str, bytes] = {}
     model_xml: str | None = None
@@ -166,25 +169,22 @@ def _load_mcap(path: Path) -> Episode:
             channels[rec.id] = rec.topic
         elif isinstance(rec, Metadata):
             if rec.name == schema.META_NAME:
-                meta = schema.decode_meta(rec.metadata)
+                start = schema.decode_mcap_meta(rec.metadata)
             elif rec.name == schema.META_END_NAME:
-                end = schema.decode_meta(rec.metadata)
+                end = schema.decode_mcap_meta(rec.metadata)
         elif isinstance(rec, Attachment):
             if rec.name == schema.MODEL_ATTACHMENT:
                 model_xml = rec.data.decode()
             elif rec.name.startswith(schema.ASSET_PREFIX):
                 assets[rec.name[len(schema.ASSET_PREFIX) :]] = bytes(rec.data)
-    if meta is None:
+    if start is None:
         why = f" (file cut short: {scan.reason})" if scan.truncated else ""
         raise EpisodeError(f"{path}: not a teleop episode: no '{schema.META_NAME}' metadata{why}")
     if model_xml is None:
         raise EpisodeError(f"{path}: no '{schema.MODEL_ATTACHMENT}' attachment")
-    meta.update(model_xml=model_xml, assets=assets)
-    meta.update(end)
-    if not end:
-        meta["success"], meta["complete"] = False, False
-    layout = _layout(path, meta)
-    width = schema.row_width(layout)
+    meta = _meta(path, lambda: schema.meta_from_mcap(start, end, model_xml, assets))
+    layout = meta.layout.fields
+    width = meta.layout.width
     step_msgs.sort(key=lambda m: m[0])
     for i, (seq, data) in enumerate(step_msgs):
         if seq != i:
@@ -199,19 +199,18 @@ def _load_mcap(path: Path) -> Episode:
     return _episode(path, "mcap", meta, rows, layout, cmds, scan.truncated, scan.reason)
 
 
-def _layout(path: Path, meta: dict) -> list[tuple[str, int]]:
+def _meta(path: Path, build) -> EpisodeMeta:
+    """Build the metadata, naming the file in the one-line error if it is unusable."""
     try:
-        expected = schema.layout_from_meta(meta)
-    except (KeyError, TypeError, ValueError):
-        raise EpisodeError(f"{path}: metadata lacks the sizes nstate/nq/nv/nu") from None
-    recorded = meta.get("step_layout")
-    if recorded is not None and [tuple(x) for x in recorded] != expected:
-        raise EpisodeError(f"{path}: recorded step layout does not match nstate/nq/nv/nu in the metadata")
-    return expected
+        return build()
+    except KeyError as exc:
+        raise EpisodeError(f"{path}: metadata lacks {exc.args[0]}") from None
+    except (TypeError, ValueError) as exc:
+        raise EpisodeError(f"{path}: {first_line(exc)}") from None
 
 
 def _episode(path, fmt, meta, rows, layout, cmds, truncated, reason) -> Episode:
-    cols = schema.split_rows(np.ascontiguousarray(rows), layout, schema.n_arms_of(meta))
+    cols = meta.layout.split(np.ascontiguousarray(rows))
     return Episode(
         path=path,
         format=fmt,
@@ -228,23 +227,13 @@ def _episode(path, fmt, meta, rows, layout, cmds, truncated, reason) -> Episode:
         truncated=truncated,
         wall_time=np.ascontiguousarray(cols["wall_time"]),
         truncated_reason=reason,
+        control=np.ascontiguousarray(cols["control"]) if "control" in cols else None,
     )
 
 
 # -- HDF5 ------------------------------------------------------------------
 
-_HDF5_FIELDS = {  # row field -> dataset under data/demo_0
-    "time": "time",
-    "wall_time": "wall_time",
-    "state": "states",
-    "ctrl": "ctrl",
-    "ee_target": "ee_target",
-    "ee_pose": "ee_pose",
-    "qpos": "obs/qpos",
-    "qvel": "obs/qvel",
-    "gripper": "gripper",
-}
-DEMO = "data/demo_0"
+DEMO = schema.HDF5_DEMO
 
 
 def _load_hdf5(path: Path) -> Episode:
@@ -264,40 +253,41 @@ def _load_hdf5(path: Path) -> Episode:
         if "model_file" not in demo.attrs:
             raise EpisodeError(f"{path}: {DEMO} has no 'model_file' attribute")
         try:
-            meta = json.loads(demo.attrs["teleop_meta"])
+            teleop_meta = json.loads(demo.attrs["teleop_meta"])
         except ValueError:
             raise EpisodeError(f"{path}: {DEMO} attribute 'teleop_meta' is not JSON") from None
-        meta["model_xml"] = _text(demo.attrs["model_file"])
         assets = {}
         if "assets" in demo:
             for ds in demo["assets"].values():
                 assets[_text(ds.attrs["name"])] = ds[()].tobytes()
-        meta["assets"] = assets
         closed = bool(demo.attrs.get("closed", True))
         # The outcome is the demo attrs (schema 1 files also copied it into teleop_meta at close).
-        for key in ("success", "complete"):
-            meta[key] = closed and bool(demo.attrs.get(key, meta.get(key, False)))
-        layout = _layout(path, meta)
-        sizes = dict(layout)
-        for name in list(_HDF5_FIELDS.values()) + ["commands"]:
+        outcome = {k: (bool(demo.attrs[k]) if k in demo.attrs else None) for k in ("success", "complete")}
+        meta = _meta(path, lambda: schema.meta_from_hdf5(
+            teleop_meta, _text(demo.attrs["model_file"]), assets, outcome["success"], outcome["complete"], closed, None))
+        layout = meta.layout
+        sizes = dict(layout.fields)
+        datasets = schema.hdf5_datasets(layout)
+        names = [d.path for d in datasets] + [schema.HDF5_COMMANDS]
+        for name in names:
             if name not in demo:
                 raise EpisodeError(f"{path}: missing dataset {DEMO}/{name}")
-        lengths = [demo[n].shape[0] for n in list(_HDF5_FIELDS.values()) + ["commands"]]
+        lengths = [demo[name].shape[0] for name in names]
         n = min(lengths + [int(demo.attrs.get("num_samples", min(lengths)))])
         if closed:
-            meta["steps"] = n
+            meta = meta.with_outcome(meta.success, meta.complete, n)
         try:
-            parts = []
-            for fld, size in layout:
-                ds = demo[_HDF5_FIELDS[fld]]
+            columns = {}
+            for d in datasets:
+                ds = demo[d.path]
                 width = int(np.prod(ds.shape[1:], dtype=np.int64))  # known without rows: 0-step episodes too
-                if width != size:
+                if width != sizes[d.field]:
                     raise EpisodeError(
-                        f"{path}: dataset {DEMO}/{_HDF5_FIELDS[fld]} has {width} values per step, "
-                        f"the metadata says {sizes[fld]}"
+                        f"{path}: dataset {DEMO}/{d.path} has {width} values per step, "
+                        f"the metadata says {sizes[d.field]}"
                     )
-                parts.append(np.asarray(ds[:n], dtype=np.float64).reshape(n, size))
-            raw_cmds = demo["commands"][:n]
+                columns[d.field] = np.asarray(ds[:n], dtype=np.float64)
+            raw_cmds = demo[schema.HDF5_COMMANDS][:n]
         except OSError as exc:
             raise EpisodeError(f"{path}: cannot read datasets (truncated or corrupt?): {exc}") from None
         cmds = []
@@ -305,10 +295,10 @@ def _load_hdf5(path: Path) -> Episode:
             try:
                 cmds.append(json.loads(_text(c)) if len(c) else [])
             except ValueError:
-                raise EpisodeError(f"{path}: {DEMO}/commands[{i}] is not JSON") from None
-    rows = np.concatenate(parts, axis=1) if n else np.zeros((0, schema.row_width(layout)))
+                raise EpisodeError(f"{path}: {DEMO}/{schema.HDF5_COMMANDS}[{i}] is not JSON") from None
+    rows = layout.join(columns)
     truncated = not closed
-    return _episode(path, "hdf5", meta, rows, layout, cmds, truncated, "" if closed else "writer never closed the file")
+    return _episode(path, "hdf5", meta, rows, layout.fields, cmds, truncated, "" if closed else "writer never closed the file")
 
 
 def _text(value) -> str:
@@ -328,24 +318,39 @@ def summarize(episode: Episode) -> dict:
         "format": episode.format,
         "steps": episode.steps,
         "seconds": round(episode.seconds, 6),
-        "success": bool(m.get("success", False)),
-        "complete": bool(m.get("complete", False)),
+        "success": m.success,
+        "complete": m.complete,
         "truncated": episode.truncated,
-        "robot": m.get("robot"),
-        "scene": m.get("scene"),
-        "seed": m.get("seed"),
-        "task": m.get("task"),
-        "mujoco_version": m.get("mujoco_version"),
-        "machine": m.get("machine"),
-        "platform": m.get("platform"),
-        "control_hz": m.get("control_hz"),
-        "timestep": m.get("timestep"),
-        "substeps": m.get("substeps"),
-        "n_arms": schema.n_arms_of(m),
-        "nstate": m.get("nstate"),
-        "start_time": m.get("start_time"),
-        "episode_index": m.get("episode_index"),
-        "schema_version": m.get("schema_version"),
+        "robot": m.robot,
+        "scene": m.scene,
+        "seed": m.seed,
+        "task": m.task,
+        "mujoco_version": m.mujoco_version,
+        "machine": m.machine,
+        "platform": m.platform,
+        "control_hz": m.control_hz,
+        "timestep": m.timestep,
+        "substeps": m.substeps,
+        "n_arms": m.n_arms,
+        "nstate": m.nstate,
+        "start_time": m.start_time,
+        "episode_index": m.episode_index,
+        "schema_version": m.schema_version,
         "steps_with_commands": sum(1 for c in episode.commands if c),
         "ee_tracking_error_mm": tracking,
+        "source": m.source,
+        "devices": list(m.devices),
+        "source_episodes": list(m.source_episodes),
+        "generator": dict(m.generator) if m.generator else None,
+        "policy": m.policy,
+        "subtasks": _subtasks(episode),
     }
+
+
+def _subtasks(episode: Episode) -> list[dict] | None:
+    """The episode's stored subtask annotations (None: not annotated, or made for another length)."""
+    try:
+        found = read_subtasks(episode.path, episode.steps)
+    except AnnotationError:
+        return None
+    return None if found is None else [s.to_json() for s in found]

@@ -13,22 +13,23 @@ LeRobot is an optional extra, imported only when an export starts.
 
 from __future__ import annotations
 
+import contextlib
 import re
 import shutil
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from replay.engine import replay_states
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import TeleopError, first_line
-from replay.export_frames import ACTION_MODES, FrameBuilder, feature_key, features, is_channel_first, robot_layout
-from replay.render import FastRenderer, RenderError, warm_up
+from replay.export_frames import ACTION_MODES, feature_key, features, is_channel_first, robot_layout
+from replay.export_stream import EpisodeEnd, FrameStream
+from replay.render import RenderError, warm_up
 
 LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
 DEFAULT_CAMERAS = ("front", "wrist")
@@ -59,10 +60,12 @@ class ExportOptions:
     task: str | None = None  # None: each episode's recorded task text
     only_success: bool = False
     video: bool = True
-    vcodec: str | None = None  # a VIDEO_CODECS key; None: h264, or with --append what the dataset has
+    vcodec: str | None = None  # a VIDEO_CODECS key; None: h264, or when appending what the dataset has
     append: bool = False
     progress: bool = True
     on_episode: Callable[[int, int], None] | None = None  # (episodes, frames) written so far, after each save
+    workers: int = 1  # > 1: shards exported in that many processes, merged by LeRobot (replay/export_parallel.py)
+    ray: str | None = None  # "auto" or HOST:PORT / ray://HOST:PORT: the shards as tasks on a Ray cluster
 
 
 @dataclass
@@ -72,7 +75,7 @@ class ExportSummary:
     frames: int = 0
     seconds: float = 0.0  # wall time of the export
     bytes: int = 0  # size of the dataset directory afterwards
-    dataset_episodes: int = 0  # in the dataset afterwards (more than `episodes` with --append)
+    dataset_episodes: int = 0  # in the dataset afterwards (more than `episodes` when appending)
     fps: int = 0
     cameras: list[str] = field(default_factory=list)
     skipped_failed: int = 0
@@ -94,7 +97,7 @@ class ExportSummary:
         )
         skipped = []
         if self.skipped_failed:
-            skipped.append(f"{self.skipped_failed} failed (--only-success)")
+            skipped.append(f"{self.skipped_failed} failed (only successful episodes kept)")
         if self.skipped_empty:
             skipped.append(f"{self.skipped_empty} empty")
         if skipped:
@@ -108,7 +111,7 @@ def parse_image_size(text: str) -> tuple[int, int]:
     """'224x224' (width x height) -> (224, 224)."""
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
     if not m or not (0 < int(m.group(1)) <= 4096 and 0 < int(m.group(2)) <= 4096):
-        raise ExportError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 224x224 (1 to 4096 pixels)")
+        raise ExportError(f"image size {text!r}: expected WIDTHxHEIGHT, e.g. 224x224 (1 to 4096 pixels)")
     return int(m.group(1)), int(m.group(2))
 
 
@@ -148,16 +151,15 @@ def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
         except EpisodeError as exc:
             raise ExportError(str(exc)) from None
         m = ep.meta
-        arms = m.get("robot_spec", {}).get("arms") or []
         entries.append(
             _Entry(
                 path=f,
-                signature=(m.get("robot"), m.get("scene"), float(m.get("control_hz") or 0)),
-                layout=tuple((tuple(a.get("joints", ())), tuple(a.get("actuators") or ())) for a in arms),
-                success=bool(m.get("success")),
-                complete=bool(m.get("complete", True)) and not ep.truncated,
+                signature=(m.robot, m.scene, m.control_hz),
+                layout=tuple((a.joints, a.actuators) for a in m.arms),
+                success=m.success,
+                complete=m.complete and not ep.truncated,
                 steps=ep.steps,
-                cameras=list(m.get("cameras") or []),
+                cameras=list(m.cameras),
             )
         )
     return entries
@@ -181,7 +183,7 @@ def _check_consistent(entries: list[_Entry]) -> None:
         raise ExportError("episodes come from different robots, scenes or rates; export them separately: " + "; ".join(parts))
 
 
-def _resolve_cameras(wanted: list[str] | None, have: list[str]) -> list[str]:
+def resolve_cameras(wanted: list[str] | None, have: list[str]) -> list[str]:
     """Exact names, or a short name that matches one camera per arm (`wrist` -> `left/wrist`, `right/wrist`)."""
     explicit = wanted is not None
     out: list[str] = []
@@ -225,6 +227,27 @@ def _lerobot():
     return LeRobotDataset
 
 
+def video_decoder() -> tuple[str, str]:
+    """(decoder, why not torchcodec) for LeRobot reading the dataset back; why is "" for torchcodec.
+
+    Asked once here and handed to LeRobot: left to itself, LeRobot retries importing torchcodec
+    for each dataset it opens and, where FFmpeg's shared libraries are missing, logs ~100 lines
+    of loading tracebacks before falling back to PyAV, which works.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec("torchcodec") is None:
+        return "pyav", "torchcodec not installed"
+    try:
+        import torchcodec  # noqa: F401
+    except (ImportError, OSError, RuntimeError) as exc:
+        text = str(exc)
+        if re.search(r"libav\w*\.so\S*: cannot open shared object file", text):
+            return "pyav", "torchcodec unavailable: FFmpeg's shared libraries (versions 4-8) not found"
+        return "pyav", f"torchcodec unavailable: {first_line(exc)[:120]}"
+    return "torchcodec", ""
+
+
 def _match_image_layout(spec: dict, theirs: dict) -> None:
     """Declare our cameras in the existing dataset's channel order (older exports are (H, W, 3))."""
     for key, ft in spec.items():
@@ -252,7 +275,7 @@ def _check_appendable(meta, spec: dict, fps: int, robot_type: str, out: Path) ->
         elif a["dtype"] != b["dtype"] or tuple(a["shape"]) != tuple(b["shape"]) or list(a.get("names") or []) != list(b["names"]):
             problems.append(f"{key} is {a['dtype']}{list(a['shape'])} there, {b['dtype']}{list(b['shape'])} here")
     if problems:
-        raise ExportError(f"--append: {out} does not match these episodes: " + "; ".join(problems[:4]))
+        raise ExportError(f"cannot append: {out} does not match these episodes: " + "; ".join(problems[:4]))
 
 
 def _encoder(settings: dict):
@@ -275,24 +298,26 @@ def _dataset_encoder(meta, wanted: str | None, out: Path):
     stream = infos[0].get("video.codec")  # as the video stream names it: h264, hevc, av1
     encoder = VIDEO_CODECS_ALIASES.get(stream, stream)
     if wanted is not None and encoder and encoder != VIDEO_CODECS[wanted]["vcodec"]:
-        raise ExportError(f"--append: {out} holds {stream} video; leave out --vcodec or give --vcodec {stream}")
+        raise ExportError(f"cannot append: {out} holds {stream} video; choose no video codec, or {stream}")
     try:
         return encoder_config_from_video_info(infos[0])
     except (ValueError, ImportError) as exc:
-        raise ExportError(f"--append: cannot encode {out}'s video codec {stream}: {first_line(exc)}") from None
+        raise ExportError(f"cannot append: cannot encode {out}'s video codec {stream}: {first_line(exc)}") from None
 
 
-def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, robot_type: str, queue: int):
-    """(dataset, created) for --out: a new dataset, or the existing one with --append."""
+def _open_dataset(
+    LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, robot_type: str, queue: int, decoder: str
+):
+    """(dataset, created) for opts.out: a new dataset, or the existing one when appending."""
     out = opts.out
     # One thread per camera's encoder: cameras already encode in parallel, and more threads
     # only fight the renderer for the cores.
-    common = dict(streaming_encoding=opts.video, encoder_queue_maxsize=queue, encoder_threads=1)
+    common = dict(streaming_encoding=opts.video, encoder_queue_maxsize=queue, encoder_threads=1, video_backend=decoder)
     if out.exists():
         if not opts.append:
-            raise ExportError(f"--out {out} already exists (add --append to add episodes to it, or choose a new directory)")
+            raise ExportError(f"{out} already exists (append the episodes to it, or choose a new directory)")
         if not (out / "meta" / "info.json").is_file():
-            raise ExportError(f"--append: {out} is not a LeRobot dataset (no meta/info.json)")
+            raise ExportError(f"cannot append: {out} is not a LeRobot dataset (no meta/info.json)")
         from lerobot.datasets import LeRobotDatasetMetadata
 
         try:  # read-only first: a dataset that does not fit is never opened for writing
@@ -306,7 +331,7 @@ def _open_dataset(LeRobotDataset, opts: ExportOptions, spec: dict, fps: int, rob
             raise
         except Exception as exc:  # noqa: BLE001 - LeRobot raises many kinds for a broken dataset
             first = first_line(exc)
-            raise ExportError(f"--append: cannot open {out} as a LeRobot dataset: {first}") from None
+            raise ExportError(f"cannot append: cannot open {out} as a LeRobot dataset: {first}") from None
         return ds, False
     encoder = _encoder(VIDEO_CODECS[opts.vcodec or DEFAULT_CODEC]) if opts.video else None
     ds = LeRobotDataset.create(
@@ -323,23 +348,26 @@ def _dir_size(path: Path) -> int:
 # -- the export -------------------------------------------------------------
 
 
-def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None) -> ExportSummary:
-    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc)."""
-    log = log or (lambda line: print(line, file=sys.stderr))
-    paths = list(paths)
+def check_options(opts: ExportOptions) -> None:
+    """The flags' own checks: they answer at once, before any file is read or LeRobot loads."""
     if opts.action not in ACTION_MODES:
-        raise ExportError(f"--action {opts.action!r}: choose one of {', '.join(ACTION_MODES)}")
+        raise ExportError(f"action {opts.action!r}: choose one of {', '.join(ACTION_MODES)}")
     if opts.vcodec is not None and opts.vcodec not in VIDEO_CODECS:
-        raise ExportError(f"--vcodec {opts.vcodec!r}: choose one of {', '.join(VIDEO_CODECS)}")
+        raise ExportError(f"video codec {opts.vcodec!r}: choose one of {', '.join(VIDEO_CODECS)}")
     if opts.vcodec is not None and not opts.video:
-        raise ExportError("--vcodec chooses the video codec; with --no-video there is no video to encode")
+        raise ExportError("a video codec was chosen, but without video there is nothing to encode")
     if not opts.repo_id or not opts.repo_id.strip():
-        raise ExportError("--repo-id must not be empty")
+        raise ExportError("repo id must not be empty")
     if opts.out.exists() and not opts.append:
-        raise ExportError(f"--out {opts.out} already exists (add --append to add episodes to it, or choose a new directory)")
+        raise ExportError(f"{opts.out} already exists (append the episodes to it, or choose a new directory)")
     if opts.append and opts.out.exists() and not (opts.out / "meta" / "info.json").is_file():
-        raise ExportError(f"--append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
-    warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
+        raise ExportError(f"cannot append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
+    if isinstance(opts.workers, bool) or not isinstance(opts.workers, int) or opts.workers < 1:
+        raise ExportError(f"workers {opts.workers!r}: expected a whole number of processes, 1 or more")
+
+
+def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]) -> tuple[list[_Entry], ExportSummary]:
+    """The episodes to export, in order, and a summary with what was skipped, the fps and the cameras."""
     entries = _scan(paths)
     summary = ExportSummary(out=opts.out)
     chosen = []
@@ -357,10 +385,26 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     cut = [e.path for e in chosen if not e.complete]
     if cut:
         log(f"note: {len(cut)} episode(s) were cut short when recorded ({_names(cut)}); exporting the steps they have")
-    robot_type, _, hz = chosen[0].signature
-    fps = summary.fps = _fps(hz)
-    cameras = summary.cameras = _resolve_cameras(opts.cameras, chosen[0].cameras)
+    summary.fps = _fps(chosen[0].signature[2])
+    summary.cameras = resolve_cameras(opts.cameras, chosen[0].cameras)
+    return chosen, summary
+
+
+def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None) -> ExportSummary:
+    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc)."""
+    log = log or (lambda line: print(line, file=sys.stderr))
+    paths = list(paths)
+    check_options(opts)
+    if opts.workers > 1 or opts.ray is not None:
+        from replay.export_parallel import export_parallel  # here, not at the top: that module builds on this one
+
+        return export_parallel(paths, opts, log)
+    warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
+    chosen, summary = select_episodes(paths, opts, log)
+    robot_type = chosen[0].signature[0]
+    fps, cameras = summary.fps, summary.cameras
     LeRobotDataset = _lerobot()  # after the input checks: they answer at once, LeRobot takes seconds to import
+    decoder, why = video_decoder()
 
     first = load_episode(chosen[0].path)
     model = first.build_model()
@@ -369,28 +413,27 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     except (KeyError, ValueError) as exc:
         raise ExportError(f"{first.path}: robot_spec does not match the recorded model: {exc}") from None
     spec = features(arms, opts.action, cameras, opts.image_size, opts.video)
-    renderer = None
-    if cameras:
-        try:
-            renderer = FastRenderer(model, *opts.image_size, cameras)
-        except RenderError as exc:
-            raise ExportError(str(exc)) from None
-        summary.backend = renderer.backend
+    try:
+        stream = FrameStream(model, opts.image_size, cameras)  # replays and renders in a thread of its own
+    except RenderError as exc:
+        raise ExportError(str(exc)) from None
+    summary.backend = stream.backend
     # A streamed episode never waits on the encoder: its queue holds a whole episode.
     queue = max(e.steps for e in chosen) + 2
     t0 = time.perf_counter()
     try:
-        ds, created = _open_dataset(LeRobotDataset, opts, spec, fps, robot_type, queue)
+        ds, created = _open_dataset(LeRobotDataset, opts, spec, fps, robot_type, queue, decoder)
     except BaseException:
-        if renderer is not None:
-            renderer.close()
+        stream.close()
         raise
+    if why and opts.video and cameras:  # once the export goes ahead: an error stays the one line
+        log(f"video: {decoder} decoder ({why})")  # slower reads in training, nothing wrong
     try:
-        _write(ds, chosen, first, opts, cameras, renderer, summary)
+        _write(ds, chosen, first, opts, cameras, stream, summary)
     except KeyboardInterrupt:
         summary.interrupted = True
     finally:
-        _finish(ds, renderer)
+        _finish(ds, stream)
         summary.seconds = time.perf_counter() - t0
         if created and summary.episodes == 0 and opts.out.exists():
             shutil.rmtree(opts.out, ignore_errors=True)  # nothing saved: leave no half dataset behind
@@ -399,56 +442,84 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     return summary
 
 
-def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, cameras, renderer, summary: ExportSummary) -> None:
+def _loader(path: Path) -> Callable[[], Episode]:
+    def load() -> Episode:
+        try:
+            return load_episode(path)
+        except EpisodeError as exc:  # changed on disk since the scan
+            raise ExportError(str(exc)) from None
+
+    return load
+
+
+def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, cameras, stream: FrameStream,
+           summary: ExportSummary) -> None:
+    """LeRobot's side: add the stream's frames, save each episode as its last frame arrives."""
     from tqdm import tqdm
 
     keys = [feature_key(c) for c in cameras]
     channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
+    loaders = [lambda: first] + [_loader(e.path) for e in chosen[1:]]
+    stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first)
     total = sum(e.steps for e in chosen)
-    bar = tqdm(total=total, unit="frame", desc="export", disable=not opts.progress, file=sys.stderr, dynamic_ncols=True)
+    bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
+               file=sys.stderr, dynamic_ncols=True)
     try:
-        for i, entry in enumerate(chosen):
-            try:
-                ep = first if i == 0 else load_episode(entry.path)
-            except EpisodeError as exc:  # changed on disk since the scan
-                raise ExportError(str(exc)) from None
-            first = None  # let the first episode's arrays go
-            model = ep.build_model()
-            if renderer is not None and i > 0:
-                renderer.load(model)  # seeds move objects: each episode has its own model
-            build = FrameBuilder(robot_layout(ep.meta, model), opts.action)
-            task = opts.task or ep.meta.get("task") or ep.meta.get("scene") or "task"
-            bar.set_description(f"episode {i + 1}/{len(chosen)}")
-            try:
-                for k, data in replay_states(ep, model):
-                    frame = build(data, ep.ctrl[k], ep.ee_target[k])
-                    if renderer is not None:
-                        for i, key in enumerate(keys):
-                            frame[key] = renderer.render(data, i, channel_first[i])
-                    frame["task"] = task
-                    ds.add_frame(frame)
-                    bar.update(1)
+        for item in stream:
+            if not isinstance(item, EpisodeEnd):
+                ds.add_frame(item)
+                bar.update(1)
+                continue
+            with _interrupt_deferred() as interrupted:
                 ds.save_episode()
-            except BaseException:
-                if ds.has_pending_frames():
-                    ds.clear_episode_buffer()
-                raise
             summary.episodes += 1
-            summary.frames += ep.steps
+            summary.frames += item.steps
+            if item.index + 1 < len(chosen):
+                bar.set_description(f"episode {item.index + 2}/{len(chosen)}")
             if opts.on_episode is not None:
                 opts.on_episode(summary.episodes, summary.frames)
+            if interrupted:
+                raise KeyboardInterrupt
+    except BaseException:
+        try:
+            pending = ds.has_pending_frames()
+        except KeyError:  # the buffer was half taken apart by save_episode (LeRobot pops its "size")
+            pending = True
+        if pending:  # the episode in progress is dropped, the saved ones stay
+            ds.clear_episode_buffer()
+        raise
     finally:
         bar.close()
 
 
-def _finish(ds, renderer) -> None:
-    """finalize() with a second Ctrl-C ignored: cutting it short would lose saved episodes."""
+@contextlib.contextmanager
+def _interrupt_deferred() -> Iterator[list]:
+    """Hold a Ctrl-C until the block ends (the list then holds it): an episode is saved whole or not at all.
+
+    LeRobot's save_episode writes data, video and metadata in turn; cut in between, the
+    dataset would hold frames its metadata does not know of.
+    """
+    caught: list = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield caught
+        return
+    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield caught
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _finish(ds, stream: FrameStream) -> None:
+    """Stop the stream, then finalize() with a second Ctrl-C ignored: cutting it short would lose saved episodes."""
     main = threading.current_thread() is threading.main_thread()
     old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
-        ds.finalize()
+        stream.close()
     finally:
-        if main:
-            signal.signal(signal.SIGINT, old)
-        if renderer is not None:
-            renderer.close()
+        try:
+            ds.finalize()
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from recorder.format import ArmMeta, EpisodeMeta
+
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 DELTA_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz")
@@ -54,32 +56,31 @@ class ArmLayout:
         return [f"{self.prefix}gripper"] if self.gripper_id is not None else []
 
 
-def _prefix(arm: dict, index: int, n_arms: int) -> str:
+def _prefix(arm: ArmMeta, index: int, n_arms: int) -> str:
     if n_arms == 1:
         return ""
-    head = [j.split("/", 1)[0] for j in arm["joints"] if "/" in j]
-    if len(head) == len(arm["joints"]) and len(set(head)) == 1:
+    head = [j.split("/", 1)[0] for j in arm.joints if "/" in j]
+    if len(head) == len(arm.joints) and len(set(head)) == 1:
         return f"{head[0]}/"
     return f"arm{index}/"
 
 
-def robot_layout(meta: dict, model: mujoco.MjModel) -> list[ArmLayout]:
-    """Arm layouts from a recording's robot_spec, resolved against its model."""
-    arms = meta["robot_spec"]["arms"]
+def robot_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> list[ArmLayout]:
+    """Arm layouts from a recording's arms, resolved against its model."""
+    arms = meta.arms
     out = []
     for i, arm in enumerate(arms):
-        actuators = arm.get("actuators") or []
-        gripper = arm.get("gripper_actuator")
+        gripper = arm.gripper_actuator
         out.append(
             ArmLayout(
                 prefix=_prefix(arm, i, len(arms)),
-                joints=list(arm["joints"]),
-                qpos_adr=np.array([model.joint(j).qposadr[0] for j in arm["joints"]], dtype=int),
-                ctrl_ids=np.array([model.actuator(a).id for a in actuators], dtype=int),
-                site_id=model.site(arm["ee_site"]).id,
+                joints=list(arm.joints),
+                qpos_adr=np.array([model.joint(j).qposadr[0] for j in arm.joints], dtype=int),
+                ctrl_ids=np.array([model.actuator(a).id for a in arm.actuators], dtype=int),
+                site_id=model.site(arm.ee_site).id,
                 gripper_id=model.actuator(gripper).id if gripper else None,
-                gripper_open=float(arm.get("gripper_open") or 0.0),
-                gripper_closed=float(arm.get("gripper_closed") or 0.0),
+                gripper_open=float(arm.gripper_open or 0.0),
+                gripper_closed=float(arm.gripper_closed or 0.0),
             )
         )
     return out

@@ -3,8 +3,8 @@
 Export renders every recorded state from one or more cameras, so the renderer
 must be fast on a CPU (Mesa llvmpipe) as well as on a GPU. MuJoCo's defaults
 (shadow maps, 4x MSAA, a 640x480 buffer, floor reflections, an infinite floor
-drawn as a 200x200 quad grid, capsules of 28x16 facets) cost ~40x over what a
-small training image needs.
+drawn as a 200x200 quad grid, capsules of 28x16 facets, textures blending two
+mipmap levels) cost ~40x over what a small training image needs.
 `tune_model` turns those off on a *copy* of the model, never on the one the
 caller simulates with, and `FastRenderer` drives MuJoCo's low-level mjr API
 with one reused GL context, scene and readback buffer.
@@ -42,10 +42,11 @@ class RenderSettings:
     finite_planes: bool = True  # infinite planes are drawn as 40k quads
     size_buffer: bool = True  # offscreen buffer = image size, not the model's (often 640x480)
     fit_tessellation: bool = True  # spheres, capsules, cylinders with as many facets as the image shows
+    one_mip_level: bool = True  # 2D textures sample the nearest mipmap level, not a blend of two
 
 
 TUNED = RenderSettings()
-DEFAULTS = RenderSettings(False, False, False, False, False, False)  # MuJoCo's own settings, for comparison
+DEFAULTS = RenderSettings(False, False, False, False, False, False, False)  # MuJoCo's own settings, for comparison
 
 
 def tune_model(model: mujoco.MjModel, width: int, height: int, settings: RenderSettings = TUNED) -> mujoco.MjModel:
@@ -107,6 +108,26 @@ def _finite_planes(m: mujoco.MjModel) -> None:
             if m.geom_size[g, k] <= 0:
                 m.geom_size[g, k] = half
         m.geom_size[g, 2] = max(float(m.geom_size[g, 2]), half / 15.0)  # ~30x30 quads
+
+
+def _sample_one_mip_level(con: mujoco.MjrContext) -> None:
+    """2D textures filtered with GL_LINEAR_MIPMAP_NEAREST instead of MuJoCo's GL_LINEAR_MIPMAP_LINEAR.
+
+    Trilinear filtering reads 8 texels a pixel from two mipmap levels and blends them;
+    on a CPU renderer (Mesa llvmpipe) that is ~15% of a 224x224 frame of the textured
+    floor. Bilinear filtering of the nearest level moves a few pixels by 1-2 levels of
+    255. Best effort: the picture is right either way, so a GL error leaves MuJoCo's filter.
+    """
+    try:
+        from OpenGL import GL
+
+        for i in range(con.ntexture):
+            if int(con.textureType[i]) == mujoco.mjtTexture.mjTEXTURE_2D:  # skyboxes (cube maps) keep theirs
+                GL.glBindTexture(GL.GL_TEXTURE_2D, int(con.texture[i]))
+                GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR_MIPMAP_NEAREST)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+    except Exception:  # noqa: BLE001 - PyOpenGL raises GLError, NullFunctionError, ImportError
+        pass
 
 
 _probes: dict[str, subprocess.Popen] = {}
@@ -235,6 +256,8 @@ class FastRenderer:
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
         if self._con.currentBuffer != mujoco.mjtFramebuffer.mjFB_OFFSCREEN:
             raise RenderError("the OpenGL context has no offscreen framebuffer")
+        if self.settings.one_mip_level:
+            _sample_one_mip_level(self._con)
         self._scene = mujoco.MjvScene(self.model, maxgeom=max(1000, 2 * self.model.ngeom))
 
     def render(self, data: mujoco.MjData, camera: int | str = 0, channel_first: bool = False) -> np.ndarray:

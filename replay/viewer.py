@@ -4,6 +4,8 @@
 restoring its recorded state (mj_setState + mj_kinematics, nothing is
 re-simulated), so what you scrub through is exactly what was recorded. The
 target and actual end-effector poses are drawn as in the live session.
+The episode's subtasks are drawn under the timeline and edited and saved in
+the Subtasks folder (replay/viewer_subtasks.py).
 
 This module sits under `replay` and so does not import `teleop`: errors are
 printed as one line and returned as exit code 2, the way the CLI reports
@@ -22,6 +24,7 @@ import numpy as np
 
 from replay.episode import Episode, EpisodeError
 from replay.listen import ListenError, check_port_free, is_loopback
+from replay.viewer_subtasks import SubtaskPanel
 from scenes.errors import TeleopError
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
@@ -45,7 +48,7 @@ class EpisodeViewer:
         self.episode = episode
         self.model = copy.copy(episode.build_model())
         self.data = mujoco.MjData(self.model)
-        self.dt = float(episode.meta.get("timestep", self.model.opt.timestep)) * episode.substeps
+        self.dt = (episode.meta.timestep or self.model.opt.timestep) * episode.substeps
         self.step = 0
         self.playing = False
         self.speed = 1.0
@@ -63,6 +66,8 @@ class EpisodeViewer:
         self.ee_lines = server.scene.add_line_segments(
             "/markers/error", points=np.zeros((n_arms, 2, 3)), colors=np.tile((255, 60, 60), (n_arms, 2, 1)).astype(np.uint8),
             thickness=3.0, thickness_units="screen")
+        self.subtasks = SubtaskPanel(server.gui, episode, self.model, self.dt, current_step=lambda: self.step,
+                                     jump=self.show)
         self._build_gui()
         self.show(0)
 
@@ -70,17 +75,19 @@ class EpisodeViewer:
         gui = self.server.gui
         ep = self.episode
         meta = ep.meta
-        state = "complete" if meta.get("complete") else "incomplete"
-        success = "succeeded" if meta.get("success") else "did not succeed"
+        state = "complete" if meta.complete else "incomplete"
+        success = "succeeded" if meta.success else "did not succeed"
         gui.add_markdown(
-            f"**{ep.path.name}**  \n{meta.get('task', '')}  \n"
-            f"{ep.steps} steps, {ep.seconds:.2f} s at {meta.get('control_hz', '?')} Hz · {state} · {success}"
+            f"**{ep.path.name}**  \n{meta.task}  \n"
+            f"{ep.steps} steps, {ep.seconds:.2f} s at {meta.control_hz:g} Hz · {state} · {success}"
             + (" · *file was cut short*" if ep.truncated else "")
         )
         self.slider = gui.add_slider("Step", min=0, max=max(ep.steps - 1, 1), step=1, initial_value=0)
+        self.subtasks.add_timeline()
         self.time_md = gui.add_markdown("")
         self.play_btn = gui.add_button("Play")
         self.speed_dd = gui.add_dropdown("Speed", options=SPEEDS, initial_value="1x")
+        self.subtasks.add_folder()
 
         @self.slider.on_update
         def _(_) -> None:
@@ -118,7 +125,8 @@ class EpisodeViewer:
             self.server.flush()  # mjviser flushes inside its atomic block, too early for viser's sender
             if int(self.slider.value) != step:
                 self.slider.value = step
-            self.time_md.content = f"t = {step * self.dt:.2f} s / {ep.seconds:.2f} s"
+            self.subtasks.show_step(step)
+            self.time_md.content = f"t = {step * self.dt:.2f} s / {ep.seconds:.2f} s · {self.subtasks.label(step)}"
 
     def run(self) -> None:
         """Play when asked, until `stop()`: steps advance with wall time x speed."""

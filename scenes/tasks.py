@@ -8,6 +8,7 @@ recording can be judged again at replay.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import mujoco
 import numpy as np
@@ -30,15 +31,43 @@ def _body_pos(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> np.ndarr
     return data.xpos[model.body(name).id]
 
 
+SubtaskKind = Literal["grasp", "place", "push"]
+
+
+@dataclass(frozen=True)
+class SubtaskSpec:
+    """One object-centric subtask of a task (MimicGen's unit of generation).
+
+    object: the body, site or geom whose frame the subtask's motion is relative to.
+    kind: how its end is found in a recording: "grasp" ends when the gripper
+        closes on the object, "place" when it opens again, "push" runs to the
+        episode's end (no gripper event).
+    """
+
+    object: str
+    kind: SubtaskKind
+
+
+def object_pose(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), rotation matrix (3, 3)) of a body, site or geom in the world frame (m)."""
+    for kind, pos, mat in ((mujoco.mjtObj.mjOBJ_BODY, data.xpos, data.xmat), (mujoco.mjtObj.mjOBJ_SITE, data.site_xpos, data.site_xmat),
+                           (mujoco.mjtObj.mjOBJ_GEOM, data.geom_xpos, data.geom_xmat)):
+        i = mujoco.mj_name2id(model, kind, name)
+        if i >= 0:
+            return pos[i].copy(), mat[i].reshape(3, 3).copy()
+    raise KeyError(f"the scene has no body, site or geom named {name!r}")
+
+
 @dataclass
 class Task:
-    """Base task: subclasses add objects and judge success."""
+    """Base task: subclasses add objects, judge success and name their subtasks in order."""
 
     name: str = ""
     summary: str = ""
     text: str = ""
     needs_bimanual: bool = False
     allows_bimanual: bool = False
+    subtasks: tuple[SubtaskSpec, ...] = ()
 
     def supports(self, bimanual: bool) -> bool:
         return self.allows_bimanual if bimanual else not self.needs_bimanual
@@ -58,7 +87,8 @@ class Task:
 
 class Lift(Task):
     def __init__(self) -> None:
-        super().__init__("lift", "pick up the cube and lift it 5 cm", "Pick up the red cube and lift it.", allows_bimanual=True)
+        super().__init__("lift", "pick up the cube and lift it 5 cm", "Pick up the red cube and lift it.", allows_bimanual=True,
+                         subtasks=(SubtaskSpec("cube", "grasp"),))
 
     def build(self, spec, layout, rng):
         xy = self.place(layout, rng)
@@ -70,7 +100,8 @@ class Lift(Task):
 
 class Stack(Task):
     def __init__(self) -> None:
-        super().__init__("stack", "put the red cube on the blue cube", "Stack the red cube on the blue cube.")
+        super().__init__("stack", "put the red cube on the blue cube", "Stack the red cube on the blue cube.",
+                         subtasks=(SubtaskSpec("cube", "grasp"), SubtaskSpec("cube_base", "place")))
 
     def build(self, spec, layout, rng):
         a = self.place(layout, rng)
@@ -92,7 +123,8 @@ class Stack(Task):
 
 class PickPlace(Task):
     def __init__(self) -> None:
-        super().__init__("pick_place", "put the cube into the bin", "Put the red cube into the grey bin.")
+        super().__init__("pick_place", "put the cube into the bin", "Put the red cube into the grey bin.",
+                         subtasks=(SubtaskSpec("cube", "grasp"), SubtaskSpec("bin", "place")))
 
     def build(self, spec, layout, rng):
         s = layout.size
@@ -122,7 +154,8 @@ class PickPlace(Task):
 
 class Door(Task):
     def __init__(self) -> None:
-        super().__init__("door", "open the hinged door 30 degrees", "Open the door by its handle.")
+        super().__init__("door", "open the hinged door 30 degrees", "Open the door by its handle.",
+                         subtasks=(SubtaskSpec("door_handle", "push"),))
 
     def build(self, spec, layout, rng):
         s = layout.size

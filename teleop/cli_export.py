@@ -43,6 +43,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "default, smallest files, ~4x slower to encode), hevc. With --append: the dataset's own codec",
     )
     p.add_argument("--append", action="store_true", help="add the episodes to the existing dataset at --out")
+    p.add_argument(
+        "--workers", default="1", metavar="K",
+        help="export shards of the episodes in K processes at once, then merge them with LeRobot's "
+        "aggregation (default 1: one process). Not with --append",
+    )
+    p.add_argument(
+        "--ray", default=None, metavar="ADDRESS",
+        help="export the shards as tasks on a Ray cluster: 'auto' (the one running on this machine's network), "
+        "HOST:PORT or ray://HOST:PORT; --workers K then sets the tasks at once (default: the cluster's CPUs). "
+        "Needs .[cluster]; the nodes need this package installed, not the episode files",
+    )
     p.set_defaults(func=cmd_export)
 
 
@@ -53,6 +64,17 @@ def quiet_environment() -> None:
     # ...which `datasets` then warns about each time LeRobot opens a dataset to append to.
     warnings.filterwarnings("ignore", message="Cannot enable progress bars", category=UserWarning)
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 encoder: errors only, no banner per video
+
+
+def _workers(text: str) -> int:
+    """--workers K, checked here so a bad value is the one error line (argparse adds its usage)."""
+    try:
+        workers = int(text)
+    except ValueError:
+        workers = 0
+    if workers < 1:
+        raise UsageError(f"--workers {text!r}: expected a whole number of processes, 1 or more")
+    return workers
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -72,6 +94,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             vcodec=args.vcodec,
             append=args.append,
             progress=sys.stderr.isatty(),
+            workers=_workers(args.workers),
+            ray=args.ray,
         )
         summary = export_dataset(args.paths, opts)
     except ExportError as exc:

@@ -86,11 +86,14 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from replay.convert import convert_episode
+    from replay.convert import CutShortError, convert_episode
     from replay import EpisodeError
 
     try:
         result = convert_episode(args.path, args.to, args.out)
+    except CutShortError as exc:
+        hint = f" with: teleop inspect {args.path} --recover OUT" if exc.recoverable else ""
+        raise UsageError(f"{exc}{hint}") from None
     except EpisodeError as exc:
         raise UsageError(str(exc)) from None
     except OSError as exc:

@@ -142,8 +142,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             episodes.append(entry)
     except KeyboardInterrupt:
         interrupted = True
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        session.close()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the save short
+        try:
+            session.close()
+        finally:
+            signal.signal(signal.SIGINT, previous)
         log("interrupted: the episode in progress was saved, marked incomplete")
     except RecorderError as exc:
         raise UsageError(f"recording failed: {exc}") from None

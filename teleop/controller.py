@@ -217,11 +217,32 @@ class Controller:
 
     # --- the tick ------------------------------------------------------------
 
-    def step(self, commands: Sequence[Command] = (), observer: TickObserver | None = None) -> StepResult:
+    def follow_ctrl(self) -> None:
+        """Point IK and the EE targets at what data.ctrl commands now.
+
+        For ticks driven by joint targets (a policy's joint action) and after a
+        restored state: IK then starts from the commanded joints, and the EE
+        target is where they put the EE (forward kinematics), so tracking
+        errors, recorded EE targets and a switch back to EE commands stay meaningful.
+        """
+        ctrl = self.data.ctrl
+        for arm in self.arms:
+            arm.ik.reset(ctrl[arm.ctrl_ids])
+            arm.target_pos, arm.target_quat = arm.ik.ee_pose()
+            if arm.gripper_id is not None:
+                g = arm.ik.arm.gripper
+                value = float(ctrl[arm.gripper_id])
+                arm.gripper_open = abs(value - g.open) <= abs(value - g.closed)
+
+    def step(
+        self, commands: Sequence[Command] = (), observer: TickObserver | None = None, ctrl: np.ndarray | None = None
+    ) -> StepResult:
         """One control tick: apply commands, solve IK, step physics `substeps` times.
 
         Episode events carried by the commands are returned, not acted on: the
-        session decides what they mean.
+        session decides what they mean. `ctrl` (nu values: joint targets and
+        gripper ctrl, the recorded layout) drives the tick instead of IK; the
+        EE targets then follow it (`follow_ctrl`).
         """
         events: list[str] = []
         for command in commands:
@@ -231,15 +252,12 @@ class Controller:
         # exactly what stepping state k under ctrl k produces.
         if observer is not None:
             observer.before_ctrl(self)
-        ik_ok = True
-        ctrl = self.data.ctrl
-        for arm in self.arms:
-            if not arm.ik.solve(arm.target_pos, arm.target_quat):
-                ik_ok = False
-            ctrl[arm.ctrl_ids] = arm.ik.q
-            if arm.gripper_id is not None:
-                g = arm.ik.arm.gripper
-                ctrl[arm.gripper_id] = g.open if arm.gripper_open else g.closed
+        if ctrl is None:
+            ik_ok = self._solve_ik()
+        else:
+            self.data.ctrl[:] = ctrl
+            self.follow_ctrl()
+            ik_ok = True
         if not ik_ok:
             self.stats.ik_failures += 1
             self.note("IK failed: holding the last good joint targets")
@@ -253,6 +271,19 @@ class Controller:
         if observer is not None:
             observer.after_physics(self, commands)
         return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
+
+    def _solve_ik(self) -> bool:
+        """Joint targets for every arm's EE target into data.ctrl; False if IK failed for one."""
+        ok = True
+        ctrl = self.data.ctrl
+        for arm in self.arms:
+            if not arm.ik.solve(arm.target_pos, arm.target_quat):
+                ok = False
+            ctrl[arm.ctrl_ids] = arm.ik.q
+            if arm.gripper_id is not None:
+                g = arm.ik.arm.gripper
+                ctrl[arm.gripper_id] = g.open if arm.gripper_open else g.closed
+        return ok
 
     def tracking_error_mm(self, since: int = 0) -> dict[str, float | None]:
         """Median and max distance (mm) from EE target to actual EE over the ticks kept (from index `since`)."""

@@ -9,3 +9,7 @@ class SessionError(TeleopError, ValueError):
 
 class UsageError(TeleopError):
     """Bad command-line input: a flag, a file, a script. The message is the whole story."""
+
+
+class EnvError(TeleopError, ValueError):
+    """A Gymnasium environment cannot be made or driven as asked (action mode, cameras, image size, an action)."""

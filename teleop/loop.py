@@ -28,6 +28,8 @@ from teleop.session import Session
 
 MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 
+FINITE_KINDS = ("script", "generated")  # devices that run out (a script, a generated plan); people do not
+
 StopReason = Literal["script_end", "success", "time", "event", "stopped", "steps"]
 
 
@@ -149,7 +151,7 @@ def run_episode(
         recorder.drivers(devices)
     if record:
         recorder.start()
-    can_finish = stop_on_script_end and bool(devices) and all(d.kind == "script" for d in devices)
+    can_finish = stop_on_script_end and bool(devices) and all(d.kind in FINITE_KINDS for d in devices)
     ik_before = session.ik_failures
     sim0 = session.time
     steps = 0

@@ -17,7 +17,7 @@ INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 class RowFiller:
-    """Writes a session's step into rows laid out as `columns` (recorder.format field slices)."""
+    """Writes a session's step into rows laid out as `columns` (the writer's StepLayout.slices)."""
 
     def __init__(self, columns: dict[str, slice], model: mujoco.MjModel, n_arms: int):
         self.model = model

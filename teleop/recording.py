@@ -21,11 +21,11 @@ import platform
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import mujoco
 
@@ -52,6 +52,22 @@ def _teleop_version() -> str:
         return "dev"
 
 
+def arm_metas(controller: Controller) -> tuple[ArmMeta, ...]:
+    """The arms as an episode file describes them (what the export's `robot_layout` reads)."""
+    return tuple(
+        ArmMeta(
+            ee_site=a.ee_site,
+            joints=tuple(a.joints),
+            actuators=tuple(controller.model.actuator(i).name for i in state.ctrl_ids),
+            home=tuple(float(v) for v in a.home),
+            gripper_actuator=a.gripper.actuator if a.gripper else None,
+            gripper_open=a.gripper.open if a.gripper else None,
+            gripper_closed=a.gripper.closed if a.gripper else None,
+        )
+        for a, state in zip(controller.scene.arms, controller.arms)
+    )
+
+
 class Recorder:
     """Records the episodes of one session into `directory`, one file per format per episode.
 
@@ -68,6 +84,7 @@ class Recorder:
         verify: Verify = "sync",
         on_error: Literal["raise", "stop"] = "raise",
         source: str | None = None,
+        provenance: Mapping[str, Any] | None = None,
     ) -> None:
         if verify not in VERIFY_MODES:
             raise ValueError(f"verify must be one of {', '.join(VERIFY_MODES)}, got {verify!r}")
@@ -80,6 +97,10 @@ class Recorder:
         self.verify: Verify = verify
         self.on_error = on_error
         self.source = source  # None: "script" when only scripts drive, else "human"
+        # EpisodeMeta fields saying where generated or policy episodes came from
+        # (source_episodes, generator, policy), stored in every episode recorded.
+        self.provenance = dict(provenance or {})
+        self.next_index: int | None = None  # the next episode's index, once (None: one past the directory's highest)
         self.devices: tuple[str, ...] = ()  # names of the devices driving, stored in each episode
         self._device_kinds: tuple[str, ...] = ()
         self.writer: EpisodeWriter | None = None
@@ -120,22 +141,10 @@ class Recorder:
     def metadata(self, controller: Controller, index: int) -> EpisodeMeta:
         """What the episode file says about itself (the model and where it was recorded)."""
         scene, session = controller.scene, self.session
-        arms = tuple(
-            ArmMeta(
-                ee_site=a.ee_site,
-                joints=tuple(a.joints),
-                actuators=tuple(controller.model.actuator(i).name for i in state.ctrl_ids),
-                home=tuple(float(v) for v in a.home),
-                gripper_actuator=a.gripper.actuator if a.gripper else None,
-                gripper_open=a.gripper.open if a.gripper else None,
-                gripper_closed=a.gripper.closed if a.gripper else None,
-            )
-            for a, state in zip(scene.arms, controller.arms)
-        )
         return EpisodeMeta(
             scene=session.scene_name,
             robot=scene.robot.name,
-            arms=arms,
+            arms=arm_metas(controller),
             nstate=controller.nstate,
             nq=controller.model.nq,
             nv=controller.model.nv,
@@ -157,7 +166,7 @@ class Recorder:
             episode_index=index,
             source=self.episode_source,
             devices=self.devices,
-        )
+        ).replace(**self.provenance)
 
     def start(self) -> None:
         """Begin an episode from the session's current state (no-op if one is open)."""
@@ -166,9 +175,10 @@ class Recorder:
         controller = self.session.controller
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            index = next_episode_index(self.directory)
+            index = next_episode_index(self.directory) if self.next_index is None else self.next_index
+            self.next_index = None
             meta = self.metadata(controller, index)
-            self.writer = EpisodeWriter(self.directory, index, self.formats, _writer_meta(meta))
+            self.writer = EpisodeWriter(self.directory, index, self.formats, meta)
         except OSError as exc:
             self._failed(RecorderError(f"{self.directory}: cannot start an episode: {exc.strerror or exc}"))
             return
@@ -279,9 +289,3 @@ class Recorder:
         if self.on_verified is not None:
             self.on_verified(path, result)
 
-
-def _writer_meta(meta: EpisodeMeta):
-    """TRANSITIONAL: the writer still takes dict metadata (to be replaced by EpisodeMeta itself)."""
-    out = {k: v for k, v in meta.to_json().items() if k not in ("success", "complete", "steps", "recovered")}
-    out.update(model_xml=meta.model_xml, assets=dict(meta.assets))
-    return out

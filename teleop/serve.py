@@ -68,7 +68,7 @@ def serve(
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
     log(f"open {app.url} in a browser (Ctrl-C to stop)")
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started in the background with SIGINT ignored
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started with SIGINT ignored
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         app.wait()
@@ -79,7 +79,10 @@ def serve(
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut a file short
         signal.signal(signal.SIGTERM, previous)
-        saved = app.close()
+        try:
+            saved = app.close()
+        finally:
+            signal.signal(signal.SIGINT, previous_int)  # the caller's handler again (serve is a library call too)
     for path in saved:
         log(f"saved {path} (incomplete: stopped mid-episode)")
     snap = app.sim.snapshot

@@ -167,15 +167,16 @@ class Session:
 
     # --- the tick ------------------------------------------------------------
 
-    def step(self, commands: Sequence[Command] = ()) -> StepResult:
+    def step(self, commands: Sequence[Command] = (), ctrl: np.ndarray | None = None) -> StepResult:
         """One control tick. Episode events in the commands act first, so "start"
-        records this tick and "reset" applies the commands to the new scene."""
+        records this tick and "reset" applies the commands to the new scene.
+        `ctrl` (nu joint and gripper targets) drives the tick instead of IK."""
         events = tuple(e for c in commands for e in c.events)
         for event in events:
             self.handle_event(event)
         recorder = self.recorder
         observer = recorder if recorder is not None and recorder.recording else None
-        result = self.controller.step(commands, observer)
+        result = self.controller.step(commands, observer, ctrl)
         result.events = events
         return result
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -50,3 +51,12 @@ def tmp_script(tmp_path):
         return write_script(tmp_path / name, steps)
 
     return make
+
+
+@pytest.fixture(autouse=True)
+def _sigint_handler_kept():
+    """No test (and no library call it makes) leaves Ctrl-C handled differently from before it."""
+    before = signal.getsignal(signal.SIGINT)
+    yield
+    after = signal.getsignal(signal.SIGINT)
+    assert after == before, f"SIGINT handler changed from {before!r} to {after!r}"

@@ -44,15 +44,15 @@ def test_both_formats_hold_the_same_episode(recorded):
     assert a.format == "mcap" and b.format == "hdf5"
     for ep in (a, b):
         assert ep.steps == STEPS and not ep.truncated
-        assert all(k in ep.meta for k in META_KEYS)
-        assert ep.meta["success"] is False and ep.meta["complete"] is True
-        assert ep.state.dtype == np.float64 and ep.state.shape == (STEPS, ep.meta["nstate"])
+        assert all(k in ep.meta.to_json() for k in META_KEYS if k not in ("model_xml", "assets"))
+        assert ep.meta.success is False and ep.meta.complete is True
+        assert ep.state.dtype == np.float64 and ep.state.shape == (STEPS, ep.meta.nstate)
         assert ep.ee_pose.shape == (STEPS, 1, 7) and ep.gripper.shape == (STEPS, 1)
     for name in ("time", "wall_time", "state", "ctrl", "ee_target", "ee_pose", "qpos", "qvel", "gripper"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
     assert a.commands == b.commands
     assert a.commands[0] == [{"source": "bench", "step": 0}] and a.commands[1] == []
-    assert a.meta["model_xml"] == b.meta["model_xml"] == pusher_xml()
+    assert a.meta.model_xml == b.meta.model_xml == pusher_xml()
 
 
 def test_contacts_happen_and_replay_is_exact_in_process(recorded):
@@ -115,10 +115,10 @@ def test_hdf5_robomimic_layout(recorded):
         demo = data["demo_0"]
         assert int(demo.attrs["num_samples"]) == STEPS
         assert demo.attrs["model_file"] == pusher_xml()
-        assert demo["states"].shape == (STEPS, ep.meta["nstate"]) and demo["states"].dtype == np.float64
-        assert demo["actions"].shape == (STEPS, ep.meta["nu"])
+        assert demo["states"].shape == (STEPS, ep.meta.nstate) and demo["states"].dtype == np.float64
+        assert demo["actions"].shape == (STEPS, ep.meta.nu)
         assert np.array_equal(demo["actions"][()], demo["ctrl"][()])
-        for key, width in (("qpos", ep.meta["nq"]), ("qvel", ep.meta["nv"]), ("ee_pose", 7), ("ee_target", 7), ("gripper", 1)):
+        for key, width in (("qpos", ep.meta.nq), ("qvel", ep.meta.nv), ("ee_pose", 7), ("ee_target", 7), ("gripper", 1)):
             assert demo[f"obs/{key}"].shape == (STEPS, width), key
         assert demo["rewards"].shape == (STEPS,) and demo["dones"][-1] == 1 and demo["dones"][()].sum() == 1
         assert demo["time"].shape == (STEPS,) and demo["commands"].shape == (STEPS,)
@@ -140,7 +140,7 @@ def test_rows_across_buffer_blocks_and_bad_steps_record_nothing(tmp_path):
     meta = episode_meta(model, xml, 0, 0, 5)
     n = 2 * BLOCK_ROWS + 37
     rng = np.random.default_rng(1)
-    states = rng.standard_normal((n, meta["nstate"]))
+    states = rng.standard_normal((n, meta.nstate))
     writer = EpisodeWriter(tmp_path, 0, ["mcap", "hdf5"], meta)
     for k in range(n):
         if k == 5:  # one number where a whole field belongs: numpy would broadcast it
@@ -186,7 +186,7 @@ def test_lifecycle_and_next_index(tmp_path):
         EpisodeWriter(tmp_path, 0, ["hdf5"], meta)
     with pytest.raises(RecorderError, match="formats"):
         EpisodeWriter(tmp_path, 5, ["csv"], meta)
-    good = StepRecord(time=0.0, state=np.zeros(meta["nstate"]), ctrl=np.zeros(model.nu), ee_target=np.zeros((1, 7)),
+    good = StepRecord(time=0.0, state=np.zeros(meta.nstate), ctrl=np.zeros(model.nu), ee_target=np.zeros((1, 7)),
                       ee_pose=np.zeros((1, 7)), qpos=np.zeros(model.nq), qvel=np.zeros(model.nv), gripper=np.ones(1))
     writer.append(good)
     with pytest.raises(RecorderError, match="numbers"):
@@ -199,7 +199,7 @@ def test_lifecycle_and_next_index(tmp_path):
     w.append(good)
     paths = w.close(success=False, complete=False)
     ep = load_episode(paths[0])
-    assert ep.steps == 1 and ep.meta["complete"] is False and not ep.truncated
+    assert ep.steps == 1 and ep.meta.complete is False and not ep.truncated
     with pytest.raises(RecorderError, match="closed"):
         w.append(good)
 
@@ -228,7 +228,7 @@ def test_exception_mid_episode_keeps_what_was_recorded(tmp_path):
     for suffix in ("mcap", "hdf5"):
         ep = load_episode(tmp_path / "out" / f"episode_000000.{suffix}")
         assert ep.steps == 41 and not ep.truncated
-        assert ep.meta["complete"] is False and ep.meta["success"] is False
+        assert ep.meta.complete is False and ep.meta.success is False
 
 
 _RECORD_FOREVER = textwrap.dedent(
@@ -272,7 +272,7 @@ def test_kill9_mid_episode_loses_at_most_a_quarter_second(tmp_path):
     mcap_path = out / "episode_000000.mcap"
 
     ep = load_episode(mcap_path)
-    assert ep.truncated and ep.meta["complete"] is False and ep.meta["success"] is False
+    assert ep.truncated and ep.meta.complete is False and ep.meta.success is False
     must_have = [k for k, wall, _ in logged if wall <= t_kill - 0.25]
     assert ep.steps >= len(must_have), f"lost {len(must_have) - ep.steps} steps older than 0.25 s"
     assert ep.wall_time[-1] >= t_kill - 0.25
@@ -289,7 +289,7 @@ def test_kill9_mid_episode_loses_at_most_a_quarter_second(tmp_path):
         summary = make_reader(fh).get_summary()
     assert summary.statistics.channel_message_counts
     again = load_episode(fixed)
-    assert not again.truncated and again.meta["complete"] is False and np.array_equal(again.state, ep.state)
+    assert not again.truncated and again.meta.complete is False and np.array_equal(again.state, ep.state)
     verdict = run_json("replay", str(fixed), "--verify", "--json")
     assert verdict["bit_exact"] is True and verdict["steps"] == ep.steps
 

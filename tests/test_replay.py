@@ -105,7 +105,7 @@ def test_convert_both_ways_keeps_everything(recorded, tmp_path, capsys):
     a, b = load_episode(recorded["mcap"]), load_episode(back)
     for name in ("time", "wall_time", "state", "ctrl", "ee_target", "ee_pose", "qpos", "qvel", "gripper"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
-    assert a.commands == b.commands and a.meta["success"] == b.meta["success"] and b.meta["complete"]
+    assert a.commands == b.commands and a.meta.success == b.meta.success and b.meta.complete
     assert resimulate(b).bit_exact
     assert find_episodes([tmp_path]) == [h5, back] and find_episodes([recorded["mcap"].parent])[0].suffix == ".mcap"
 
@@ -140,7 +140,7 @@ def test_truncated_mcap_inspect_recover_but_not_convert(recorded, tmp_path, caps
 
 def test_version_mismatch_warns(recorded, capsys):
     ep = load_episode(recorded["mcap"])
-    old = dataclasses.replace(ep, meta={**ep.meta, "mujoco_version": "2.3.7", "machine": "arm64"})
+    old = dataclasses.replace(ep, meta=ep.meta.replace(mujoco_version="2.3.7", machine="arm64"))
     result = resimulate(old)
     err = capsys.readouterr().err.strip().splitlines()
     assert result.bit_exact and len(result.warnings) == 2
@@ -191,9 +191,7 @@ def test_wrong_state_size(recorded, tmp_path, capsys):
     assert_usage_error(capsys, "replay", str(path), match="states has")
     # consistent file, but the model needs a different state size
     ep = load_episode(recorded["mcap"])
-    meta = {**ep.meta, "nstate": ep.meta["nstate"] - 2, "step_layout": None}
-    meta.pop("step_layout")
-    short = dataclasses.replace(ep, state=np.ascontiguousarray(ep.state[:, :-2]), meta=meta)
+    short = dataclasses.replace(ep, state=np.ascontiguousarray(ep.state[:, :-2]), meta=ep.meta.replace(nstate=ep.meta.nstate - 2))
     out = tmp_path / "short_state.mcap"
     write_episode(short, out, "mcap")
     assert_usage_error(capsys, "replay", str(out), "--verify", match="the recorded model needs")
@@ -201,7 +199,7 @@ def test_wrong_state_size(recorded, tmp_path, capsys):
 
 def test_model_that_does_not_compile(recorded, tmp_path, capsys):
     ep = load_episode(recorded["mcap"])
-    bad = dataclasses.replace(ep, meta={**ep.meta, "model_xml": "<mujoco><worldbody><geom type='nonsense'/></worldbody></mujoco>"})
+    bad = dataclasses.replace(ep, meta=ep.meta.replace(model_xml="<mujoco><worldbody><geom type='nonsense'/></worldbody></mujoco>"))
     out = tmp_path / "bad_model.mcap"
     write_episode(bad, out, "mcap")
     assert_usage_error(capsys, "replay", str(out), "--verify", match="does not compile")

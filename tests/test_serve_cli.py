@@ -68,7 +68,7 @@ def test_ctrl_c_saves_the_episode_in_progress_as_incomplete(tmp_path):
     (saved,) = sorted(record.glob("episode_*.mcap"))
     assert f"saved {saved}" in log and "incomplete" in log
     episode = load_episode(saved)
-    assert episode.meta["complete"] is False and episode.steps > 15 and not episode.truncated
+    assert episode.meta.complete is False and episode.steps > 15 and not episode.truncated
 
 
 def test_sigint_without_a_browser_exits_cleanly(tmp_path):

@@ -21,7 +21,7 @@ SCRIPT = {"steps": [
     {"duration": 0.6, "move": [0, 0, -0.1]},
     {"duration": 0.4, "gripper": "close"},
     {"duration": 0.8, "move": [0, 0, 0.15]},
-    {"duration": 8.0, "move": [-0.1, 0.1, 0]},
+    {"duration": 40.0, "move": [-0.1, 0.1, 0]},  # long: a slow machine must not reach the end while the test pauses
 ]}
 
 
@@ -74,8 +74,16 @@ def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
             assert shown_time() > 0.2  # playing moves the timeline
             headless.click_button(page, "Pause")
             page.get_by_role("button", name="Play", exact=True).wait_for(timeout=10000)
-            time.sleep(1.0)
-            paused = shown_time()
+            # The page may lag the server on a loaded machine: wait for the clock to settle,
+            # well before the episode's end (42.6 s), then check that it stays put.
+            paused, settle = shown_time(), time.monotonic() + 20
+            while time.monotonic() < settle:
+                time.sleep(1.0)
+                now = shown_time()
+                if now == paused:
+                    break
+                paused = now
+            assert paused < 35.0, paused
             time.sleep(1.0)
             assert shown_time() == paused
             # scrub: type a step into the slider's number box

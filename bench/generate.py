@@ -1,0 +1,70 @@
+"""Generation figures: success rates per task, episodes per minute, and scaling with workers.
+
+Figures (`measure`):
+  generate_success_rate_lift / _pick_place / _stack
+      kept / attempts over SEEDS new seeds (1000, 1001, ...) from 3 scripted source demos
+      of the task (seeds 0, 1, 2, the scripts in scenes/scripts), 2 local workers
+  generate_episodes_per_min    successful lift episodes per minute of wall time, 2 workers
+                               (each attempt: scene build, IK + physics, MCAP recording, a
+                               bit-exact replay check)
+  generate_scaling_2_workers   episodes/min with 2 workers over 1 worker, the same lift
+                               generation, measured in this run
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPTS = {"lift": "lift_pick.json", "pick_place": "pick_place.json", "stack": "stack_pick.json"}
+SEEDS = 100  # new seeds per task (the issue's figure)
+QUICK_SEEDS = 20
+FIRST_NEW_SEED = 1000
+
+
+def record_sources(task: str, directory: Path, seeds=(0, 1, 2)) -> list[Path]:
+    """3 scripted demos of `task` through the public API, as a user would record them."""
+    import teleop
+
+    paths: list[Path] = []
+    for seed in seeds:
+        session = teleop.Session(scene=task, robot="panda", seed=seed, control_hz=30)
+        script = teleop.ScriptDevice(ROOT / "scenes" / "scripts" / SCRIPTS[task])
+        with teleop.Recorder(session, directory, formats=("mcap",), verify="off") as rec:
+            result = teleop.run_episode(session, [script])
+        if not result.success:
+            raise RuntimeError(f"the scripted {task} source (seed {seed}) did not succeed")
+        paths.extend(rec.paths)
+    return paths
+
+
+def _generate(sources: list[Path], out: Path, num: int, workers: int, attempts: int):
+    from teleop.generate import GenerateOptions, generate
+
+    opts = GenerateOptions(out=out, num=num, seed=FIRST_NEW_SEED, workers=workers, max_attempts=attempts,
+                           progress=False)
+    return generate(sources, opts, log=lambda line: None)
+
+
+def measure(quick: bool = False) -> dict[str, float]:
+    seeds = QUICK_SEEDS if quick else SEEDS
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="teleop-bench-generate-") as tmp:
+        tmp = Path(tmp)
+        sources = {task: record_sources(task, tmp / "src" / task) for task in SCRIPTS}
+        for task, paths in sources.items():
+            # num = seeds with max_attempts = seeds: every seed is tried once, the rate is kept / tried
+            s = _generate(paths, tmp / "gen" / task, seeds, workers=2, attempts=seeds)
+            out[f"generate_success_rate_{task}"] = round(s.success_rate, 3)
+            print(f"  {task}: {s.successes}/{s.attempts} kept in {s.seconds:.1f} s", file=sys.stderr)
+        n = 10 if quick else 30
+        rates = {}
+        for workers in (1, 2):
+            s = _generate(sources["lift"], tmp / f"speed{workers}", n, workers=workers, attempts=3 * n)
+            rates[workers] = s.episodes_per_min
+            print(f"  lift, {workers} worker(s): {s.episodes_per_min:.1f} episodes/min", file=sys.stderr)
+        out["generate_episodes_per_min"] = round(rates[2], 1)
+        out["generate_scaling_2_workers"] = round(rates[2] / rates[1], 2) if rates[1] else 0.0
+    return out

@@ -1,0 +1,173 @@
+"""Finding an episode's subtask boundaries from what it recorded.
+
+A task names its subtasks in order (scenes.tasks.SubtaskSpec). In a recording,
+a "grasp" subtask ends when the gripper, commanded closed, has closed on its
+object: the first step after the close command at which both fingers (or, for a
+one-contact gripper, the gripper) touch the object and the fingers have
+stopped moving (the grip is firm before the next subtask moves the arm). A "place" subtask ends when
+the gripper, commanded open again, has let go of what it held. A "push"
+subtask has no gripper event and runs to the episode's end. The last subtask
+always ends at the episode's end.
+
+Contacts come from the recorded states (mj_setState + mj_forward), so the
+boundaries are those of what happened, not of what was asked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from recorder.annotations import AnnotationError, Subtask, from_boundaries, read_subtasks, write_subtasks
+from replay.episode import Episode, load_episode
+from scenes.tasks import TASKS, SubtaskSpec
+
+CLOSED_BELOW = 0.5  # commanded gripper opening (1 open .. 0 closed) under which the gripper is closing
+SETTLED = 0.05  # gripper actuator speed, as a fraction of its ctrl range per second, under which it has stopped
+
+
+class NoGraspError(AnnotationError):
+    """A source episode in which a subtask's gripper event never happens (named in the message)."""
+
+
+def task_subtasks(scene: str) -> tuple[SubtaskSpec, ...]:
+    """The subtasks the scene's task declares; AnnotationError if it declares none."""
+    task = TASKS.get(scene)
+    if task is None or not task.subtasks:
+        raise AnnotationError(f"task {scene!r} declares no subtasks to annotate")
+    return task.subtasks
+
+
+def _subtree(model: mujoco.MjModel, root: int) -> set[int]:
+    """Body ids of `root` and every body below it."""
+    out = {root}
+    for b in range(root + 1, model.nbody):
+        if int(model.body_parentid[b]) in out:
+            out.add(b)
+    return out
+
+
+def _object_bodies(model: mujoco.MjModel, name: str) -> set[int]:
+    """The bodies that make up a reference object (body, or the body of a site or geom)."""
+    for kind, owner in ((mujoco.mjtObj.mjOBJ_BODY, None), (mujoco.mjtObj.mjOBJ_SITE, model.site_bodyid),
+                        (mujoco.mjtObj.mjOBJ_GEOM, model.geom_bodyid)):
+        i = mujoco.mj_name2id(model, kind, name)
+        if i >= 0:
+            return _subtree(model, i if owner is None else int(owner[i]))
+    raise AnnotationError(f"the recorded scene has no body, site or geom named {name!r}")
+
+
+class _Contacts:
+    """Which gripper geoms touch an object at a recorded step."""
+
+    def __init__(self, episode: Episode, arm: int = 0) -> None:
+        self.episode = episode
+        self.model = episode.build_model()
+        self.data = mujoco.MjData(self.model)
+        arm_meta = episode.meta.arms[arm]
+        site = self.model.site(arm_meta.ee_site).id
+        self.gripper = _subtree(self.model, int(self.model.site_bodyid[site]))
+        self.actuator = self.model.actuator(arm_meta.gripper_actuator).id if arm_meta.gripper_actuator else None
+        if self.actuator is not None:
+            lo, hi = self.model.actuator_ctrlrange[self.actuator]
+            self.settled_speed = SETTLED * max(abs(float(hi - lo)), 1e-6)  # actuator length units per second
+
+    def settled(self, k: int) -> bool:
+        """True when the gripper's actuator has stopped moving at step k (fingers closed on something)."""
+        if self.actuator is None:
+            return True
+        self._at(k)
+        return abs(float(self.data.actuator_velocity[self.actuator])) < self.settled_speed
+
+    def _at(self, k: int) -> mujoco.MjData:
+        """The recorded state of step k, forward-computed (contacts, actuator velocities)."""
+        mujoco.mj_setState(self.model, self.data, self.episode.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)
+        return self.data
+
+    def touching(self, k: int, bodies: set[int]) -> int:
+        """Number of distinct gripper geoms in contact with `bodies` at step k."""
+        m, d = self.model, self._at(k)
+        geoms = set()
+        for c in d.contact[: d.ncon]:
+            b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
+            if b1 in self.gripper and b2 in bodies:
+                geoms.add(int(c.geom1))
+            elif b2 in self.gripper and b1 in bodies:
+                geoms.add(int(c.geom2))
+        return len(geoms)
+
+
+def _edges(closed: np.ndarray, start: int, to_closed: bool) -> list[int]:
+    """Steps >= start where the command changes to closed (or to open)."""
+    return [k for k in range(max(start, 1), len(closed)) if closed[k] == to_closed and closed[k - 1] != to_closed]
+
+
+def auto_subtasks(episode: Episode, specs: Sequence[SubtaskSpec] | None = None, arm: int = 0) -> list[Subtask]:
+    """The episode's subtasks, found from its gripper commands and contacts.
+
+    Raises NoGraspError naming the file when a grasp (or release) never happens.
+    """
+    specs = tuple(specs if specs is not None else task_subtasks(episode.meta.scene))
+    name = episode.path.name
+    steps = episode.steps
+    if steps < len(specs):
+        raise AnnotationError(f"{name}: {steps} steps cannot hold {len(specs)} subtasks")
+    if episode.gripper.ndim != 2 or episode.gripper.shape[1] <= arm:
+        raise AnnotationError(f"{name}: no gripper commands recorded for arm {arm}")
+    closed = episode.gripper[:, arm] < CLOSED_BELOW
+    contacts = _Contacts(episode, arm)
+    ends: list[int] = []
+    cursor, held = 0, None
+    for i, spec in enumerate(specs):
+        if spec.kind == "push":
+            if i != len(specs) - 1:
+                raise AnnotationError(f"{name}: a push subtask ({spec.object}) must be the last")
+            break
+        obj = _object_bodies(contacts.model, spec.object)
+        end = None
+        if spec.kind == "grasp":
+            for k_close in _edges(closed, cursor, True):
+                opens = _edges(closed, k_close, False)
+                stop = opens[0] if opens else steps
+                touching = [(k, contacts.touching(k, obj)) for k in range(k_close, stop)]
+                both = [k for k, n in touching if n >= 2]
+                one = [k for k, n in touching if n >= 1]
+                if both or one:
+                    first = (both or one)[0]
+                    end = next((k for k in range(first, stop) if contacts.settled(k)), first)
+                    break
+            if end is None:
+                raise NoGraspError(f"{name}: no grasp of {spec.object} found (the gripper never closes on it)")
+            held = obj
+        else:  # place: the gripper opens and lets go of what it held
+            opens = _edges(closed, cursor, False)
+            if not opens:
+                raise NoGraspError(f"{name}: the gripper never opens to place on {spec.object}")
+            end = opens[0]
+            if held is not None:
+                end = next((k for k in range(opens[0], steps) if contacts.touching(k, held) == 0), steps - 1)
+        end = min(max(end, cursor + 1), steps - 1)
+        ends.append(end)
+        cursor = end
+    return from_boundaries([s.object for s in specs], ends[: len(specs) - 1], steps)
+
+
+def annotate(path: str | Path, auto: bool = False, save: bool = True) -> tuple[list[Subtask], str]:
+    """(subtasks, how) for an episode file: stored ones, else (with auto) found and stored.
+
+    how: "stored" or "auto". Without `auto` and nothing stored, AnnotationError.
+    """
+    episode = load_episode(path)
+    stored = None if auto else read_subtasks(episode.path, episode.steps)
+    if stored is not None:
+        return stored, "stored"
+    if not auto:
+        raise AnnotationError(f"{episode.path.name}: not annotated (annotate it automatically, or in the replay viewer)")
+    subtasks = auto_subtasks(episode)
+    if save:
+        write_subtasks(episode.path, subtasks, episode.steps, by="auto")
+    return subtasks, "auto"

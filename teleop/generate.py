@@ -1,0 +1,432 @@
+"""`teleop generate`: many demonstrations from a few, on local worker processes or a Ray cluster.
+
+The driver loads and annotates the sources once, then hands out batches of
+seeds. A worker (a process of its own, or a Ray task on any machine) builds each
+seed's scene, runs one generated attempt (teleop.generate_plan) through the same
+Session and loop as a person's episode, records it, checks it replays bit for
+bit, and returns the episode's bytes: the driver alone writes files, so a
+cluster needs no shared file system.
+
+Results are taken in seed order whatever order workers finish in, so the same
+sources and seed give the same episodes with 1, 2 or 20 workers.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from recorder import next_episode_index
+from recorder.annotations import read_subtasks, write_subtasks
+from replay.annotate import auto_subtasks
+from replay.cluster import connect_ray
+from replay.episode import EpisodeError, find_episodes, load_episode
+from scenes.errors import TeleopError, first_line
+from teleop.generate_plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
+from teleop.loop import run_episode
+from teleop.recording import Recorder
+from teleop.session import Session
+
+GENERATOR = "teleop.generate"
+GENERATOR_VERSION = 1
+FORMATS = ("mcap", "hdf5")
+
+
+class GenerateError(TeleopError, ValueError):
+    """Sources or options that cannot generate (mixed scenes, no grasp, a bad Ray address, ...)."""
+
+
+@dataclass(frozen=True)
+class SourceDemo:
+    """A source episode cut into its subtask segments."""
+
+    name: str
+    segments: tuple[Segment, ...]
+
+
+@dataclass(frozen=True)
+class Job:
+    """What every worker needs: the scene and the sources (sent once per worker)."""
+
+    scene: str
+    robot: str
+    control_hz: float
+    sources: tuple[SourceDemo, ...]
+    formats: tuple[str, ...]
+    keep_failures: bool
+    settle_s: float = SETTLE_S
+
+    @property
+    def max_steps(self) -> int:
+        """A bound on one attempt's ticks: the longest source, twice, plus settling."""
+        longest = max(sum(len(s.poses) for s in src.segments) for src in self.sources)
+        return 2 * longest + int(math.ceil((self.settle_s + 10.0) * self.control_hz))
+
+
+@dataclass
+class Attempt:
+    """One seed's result, as a worker returns it."""
+
+    seed: int
+    index: int  # episode index the files carry (its position among the attempts, after the directory's episodes)
+    success: bool
+    steps: int
+    sources: tuple[str, ...]
+    bit_exact: bool | None = None
+    files: list[tuple[str, bytes]] = field(default_factory=list)  # (file name, bytes); only what is kept
+    error: str = ""  # a seed whose scene could not run (reported, counted as a failure)
+
+
+@dataclass
+class GenerateSummary:
+    attempts: int = 0
+    successes: int = 0
+    success_rate: float = 0.0
+    episodes_per_min: float = 0.0  # kept episodes per minute of wall time, workers' start-up excluded
+    workers: int = 1
+    backend: str = "local"  # "local" or "ray"
+    files: list[str] = field(default_factory=list)
+    failures_kept: int = 0
+    not_bit_exact: int = 0
+    seconds: float = 0.0  # wall time in all
+    startup_s: float = 0.0  # of which starting the workers (spawn, imports) or joining Ray
+    seeds: list[int] = field(default_factory=list)  # seeds of the kept successes
+    stopped_early: str = ""  # why fewer than asked were kept ("" when all were)
+    interrupted: bool = False  # Ctrl-C: what was kept until then stays
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def line(self) -> str:
+        out = (f"generated {self.successes} episodes in {self.attempts} attempts "
+               f"({self.success_rate:.0%} success, {self.episodes_per_min:.1f} episodes/min, "
+               f"{self.workers} {'Ray' if self.backend == 'ray' else 'local'} workers)")
+        out += f"; {self.stopped_early}" if self.stopped_early else ""
+        return out + ("; interrupted" if self.interrupted else "")
+
+
+# -- sources --------------------------------------------------------------------
+
+
+def load_sources(paths: Iterable[str | Path], log: Callable[[str], None] | None = None) -> tuple[Job, list[SourceDemo]]:
+    """Load, check and cut the source episodes; returns (a Job with scene, robot and rate, the sources).
+
+    Every source is checked before any is annotated, so a bad one is the only
+    thing said. Sources without stored annotations are annotated automatically
+    (and the annotations saved beside them when the folder is writable).
+    """
+    files = find_episodes(paths)
+    if not files:
+        raise GenerateError("no source episodes given")
+    episodes = []
+    kinds: dict[tuple[str, str, float], str] = {}
+    for path in files:
+        try:
+            ep = load_episode(path)
+        except EpisodeError as exc:
+            raise GenerateError(str(exc)) from None
+        kinds.setdefault((ep.meta.scene, ep.meta.robot, ep.meta.control_hz), path.name)
+        if len(kinds) > 1:
+            found = ", ".join(f"{name} is {s}/{r} at {hz:g} Hz" for (s, r, hz), name in kinds.items())
+            raise GenerateError(f"sources must share one scene, robot and control rate: {found}")
+        if len(ep.meta.arms) != 1:
+            raise GenerateError(f"{path.name}: generation drives one arm; this episode has {len(ep.meta.arms)}")
+        episodes.append(ep)
+    annotated = [(ep, read_subtasks(ep.path, ep.steps)) for ep in episodes]
+    found = [(ep, subtasks or auto_subtasks(ep), subtasks is None) for ep, subtasks in annotated]
+    sources: list[SourceDemo] = []
+    for ep, subtasks, auto in found:
+        if auto:
+            try:
+                write_subtasks(ep.path, subtasks, ep.steps, by="auto")
+            except OSError:
+                pass  # a read-only source: the annotations are used, not kept
+            if log is not None:
+                log(f"{ep.path.name}: annotated automatically ({', '.join(s.object for s in subtasks)})")
+        sources.append(SourceDemo(str(ep.path), tuple(segments_of(ep, subtasks))))
+    objects = {tuple(seg.object for seg in s.segments) for s in sources}
+    if len(objects) > 1:
+        raise GenerateError(f"sources are annotated with different subtasks: {sorted(objects)}")
+    ((scene, robot, hz),) = kinds
+    job = Job(scene=scene, robot=robot, control_hz=hz, sources=tuple(sources), formats=("mcap",), keep_failures=False)
+    return job, sources
+
+
+# -- the worker -----------------------------------------------------------------
+
+
+def run_attempt(job: Job, seed: int, index: int, workdir: Path) -> Attempt:
+    """Generate, record and check one seed; the episode's bytes come back if it is kept."""
+    try:
+        session = Session(scene=job.scene, robot=job.robot, seed=seed, control_hz=job.control_hz)
+    except TeleopError as exc:
+        return Attempt(seed, index, False, 0, (), error=first_line(exc))
+    rng = np.random.default_rng([seed, 0x6E6])  # which source serves each subtask, among the nearest
+    n_subtasks = len(job.sources[0].segments)
+    chosen = choose_segments(session, [[src.segments[i] for src in job.sources] for i in range(n_subtasks)], rng)
+    names = tuple(dict.fromkeys(seg.source for seg in chosen))
+    provenance = {
+        "source_episodes": names,
+        "generator": {"name": GENERATOR, "version": GENERATOR_VERSION, "seed": seed,
+                      "subtasks": [seg.object for seg in chosen], "sources": [seg.source for seg in chosen],
+                      "settle_s": job.settle_s},
+    }
+    out = workdir / f"seed{seed}"
+    recorder = Recorder(session, out, formats=job.formats, verify="sync", source="generated", provenance=provenance)
+    recorder.next_index = index
+    with recorder:
+        result = run_episode(session, [PlanDevice(session, chosen, settle_s=job.settle_s)], max_steps=job.max_steps)
+    attempt = Attempt(seed, index, result.success, result.steps, names, bit_exact=result.replay_bit_exact)
+    if result.success or job.keep_failures:
+        attempt.files = [(p.name, p.read_bytes()) for p in recorder.paths]
+    shutil.rmtree(out, ignore_errors=True)
+    return attempt
+
+
+def run_batch(job: Job, seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
+    """Attempts for (seed, index) pairs, in order; the unit of work a worker or Ray task takes."""
+    with tempfile.TemporaryDirectory(prefix="teleop-generate-") as tmp:
+        return [run_attempt(job, seed, index, Path(tmp)) for seed, index in seeds]
+
+
+_JOB: Job | None = None  # a local worker process's job, set once by its initializer
+
+
+def _init_worker(job: Job) -> None:
+    global _JOB
+    _JOB = job
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops the workers
+    Session(scene=job.scene, robot=job.robot, seed=0, control_hz=job.control_hz)  # imports and a first build, paid at start-up
+
+
+def _ready() -> None:
+    time.sleep(0.2)  # long enough that each worker takes one of these, so all have started
+
+
+def _local_batch(seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
+    assert _JOB is not None
+    return run_batch(_JOB, seeds)
+
+
+# -- backends -------------------------------------------------------------------
+
+
+class _InProcess:
+    """One worker: the driver's own process."""
+
+    workers = 1
+    backend = "local"
+
+    def __init__(self, job: Job) -> None:
+        self.job = job
+
+    def submit(self, seeds):
+        fut: Future = Future()
+        fut.set_result(run_batch(self.job, seeds))
+        return fut
+
+    def wait(self, pending):
+        return set(pending)
+
+    def result(self, fut):
+        return fut.result()
+
+    def close(self, cancel: bool = False) -> None:
+        pass
+
+
+class _Processes(_InProcess):
+    """K local worker processes (spawned: a GL context or MuJoCo state never crosses a fork)."""
+
+    def __init__(self, job: Job, workers: int) -> None:
+        self.workers = workers
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                                        initializer=_init_worker, initargs=(job,))
+        for fut in [self.pool.submit(_ready) for _ in range(workers)]:
+            fut.result()  # start-up (spawn, imports) is timed apart from generation
+
+    def submit(self, seeds):
+        return self.pool.submit(_local_batch, list(seeds))
+
+    def wait(self, pending):
+        done, _ = wait(pending, return_when=FIRST_COMPLETED)
+        return done
+
+    def close(self, cancel: bool = False) -> None:
+        if cancel:  # interrupted: stop the batches in flight now rather than let them finish
+            for process in list(getattr(self.pool, "_processes", {}).values()):  # the executor has no public kill
+                process.terminate()
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _Ray(_InProcess):
+    """Batches as Ray tasks; each returns its episodes' bytes to the driver."""
+
+    backend = "ray"
+
+    def __init__(self, job: Job, address: str) -> None:
+        ray = connect_ray(address)
+        self.ray = ray
+        self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self.job_ref = ray.put(job)
+        self.task = ray.remote(num_cpus=1)(run_batch)
+        self.refs: set = set()  # tasks in flight
+
+    def submit(self, seeds):
+        ref = self.task.remote(self.job_ref, list(seeds))
+        self.refs.add(ref)
+        return ref
+
+    def wait(self, pending):
+        done, _ = self.ray.wait(list(pending), num_returns=1)
+        return set(done)
+
+    def result(self, ref):
+        self.refs.discard(ref)
+        return self.ray.get(ref)
+
+    def close(self, cancel: bool = False) -> None:
+        if cancel:
+            for ref in self.refs:
+                self.ray.cancel(ref, force=True)
+        # the cluster (or the caller's local instance) stays up
+
+
+# -- the driver -----------------------------------------------------------------
+
+
+@dataclass
+class GenerateOptions:
+    out: Path
+    num: int
+    seed: int = 0
+    workers: int | None = None  # None: the number of cores
+    ray: str | None = None  # "auto" or an address: run on Ray instead of local processes
+    keep_failures: bool = False
+    formats: tuple[str, ...] = ("mcap",)
+    max_attempts: int | None = None  # None: 10 x num + 10
+    batch: int | None = None  # seeds per task; None: a few per worker, for balance
+    progress: bool = True
+
+
+def generate(sources: Iterable[str | Path], opts: GenerateOptions,
+             log: Callable[[str], None] | None = None) -> GenerateSummary:
+    """Generate `opts.num` successful episodes from the sources into `opts.out`."""
+    log = log or (lambda line: print(line, file=sys.stderr))
+    if opts.num <= 0:
+        raise GenerateError(f"the number of episodes to generate must be positive, got {opts.num}")
+    if opts.workers is not None and opts.workers <= 0:
+        raise GenerateError(f"workers must be positive, got {opts.workers}")
+    unknown = [f for f in opts.formats if f not in FORMATS]
+    if unknown or not opts.formats:
+        raise GenerateError(f"format {','.join(unknown) or '(none)'}: choose mcap, hdf5 or both")
+    if opts.out.exists() and not opts.out.is_dir():
+        raise GenerateError(f"{opts.out} exists and is not a directory")
+    if opts.ray is not None:  # before any work: a bad address is the only thing said
+        connect_ray(opts.ray)
+    stub, sources = load_sources(sources, log)
+    job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures)
+    max_attempts = opts.max_attempts or 10 * opts.num + 10
+    t_start = time.perf_counter()
+    if opts.ray is not None:
+        pool = _Ray(job, opts.ray)
+    else:
+        workers = opts.workers or os.cpu_count() or 1
+        pool = _InProcess(job) if workers == 1 else _Processes(job, workers)
+    opts.out.mkdir(parents=True, exist_ok=True)
+    base = next_episode_index(opts.out)
+    if opts.keep_failures:
+        base = max(base, next_episode_index(opts.out / "failures"))
+    # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
+    batch = opts.batch or (max(1, min(8, opts.num // (2 * pool.workers))) if pool.backend == "ray" else 2)
+    summary = GenerateSummary(workers=pool.workers, backend=pool.backend)
+    t0 = time.perf_counter()
+    summary.startup_s = round(t0 - t_start, 3)
+    try:
+        _drive(pool, job, opts, base, batch, max_attempts, summary)
+    except KeyboardInterrupt:
+        summary.interrupted = True
+    finally:
+        pool.close(cancel=summary.interrupted)
+        work = time.perf_counter() - t0
+        summary.seconds = round(time.perf_counter() - t_start, 3)
+    summary.success_rate = round(summary.successes / summary.attempts, 4) if summary.attempts else 0.0
+    summary.episodes_per_min = round(60.0 * summary.successes / work, 2) if work > 0 else 0.0
+    if summary.successes < opts.num and not summary.interrupted:
+        summary.stopped_early = (f"stopped after {summary.attempts} attempts (the bound) with "
+                                 f"{summary.successes} of {opts.num} episodes")
+    return summary
+
+
+def _drive(pool, job: Job, opts: GenerateOptions, base: int, batch: int, max_attempts: int,
+           summary: GenerateSummary) -> None:
+    next_seed = 0  # attempts handed out
+    pending: dict = {}  # future -> batch number
+    results: dict[int, list[Attempt]] = {}  # finished batches waiting for their turn
+    taken = 0  # batches consumed in order
+    in_flight = 2 * pool.workers
+    columns = (TextColumn("generate"), BarColumn(), MofNCompleteColumn(), TextColumn("kept · {task.fields[info]}"),
+               TimeRemainingColumn())
+    with Progress(*columns, disable=not opts.progress, transient=False,
+                  console=Console(stderr=True)) as bar:
+        task = bar.add_task("generate", total=opts.num, info="")
+        n_batches = 0
+        while summary.successes < opts.num:
+            while len(pending) < in_flight and next_seed < max_attempts:
+                seeds = [(opts.seed + i, base + i) for i in range(next_seed, min(next_seed + batch, max_attempts))]
+                pending[pool.submit(seeds)] = n_batches
+                n_batches += 1
+                next_seed += len(seeds)
+            if not pending and taken not in results:
+                break
+            for fut in pool.wait(set(pending)):
+                results[pending.pop(fut)] = pool.result(fut)
+            while taken in results and summary.successes < opts.num:
+                for attempt in results.pop(taken):
+                    if summary.successes >= opts.num:
+                        break
+                    _take(attempt, opts, summary)
+                taken += 1
+            rate = summary.successes / summary.attempts if summary.attempts else 0.0
+            bar.update(task, completed=summary.successes,
+                       info=f"{summary.attempts} attempts, {rate:.0%} success")
+
+
+def _take(attempt: Attempt, opts: GenerateOptions, summary: GenerateSummary) -> None:
+    """Count one attempt in seed order and write what is kept."""
+    summary.attempts += 1
+    if attempt.bit_exact is False:
+        summary.not_bit_exact += 1
+    if attempt.success:
+        summary.successes += 1
+        summary.seeds.append(attempt.seed)
+        directory = opts.out
+    elif attempt.files:
+        summary.failures_kept += 1
+        directory = opts.out / "failures"  # marked twice: success false inside, and kept apart
+    else:
+        return
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, data in attempt.files:
+        path = directory / name
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)  # a killed run never leaves a half file under an episode's name
+        summary.files.append(str(path))
+
+
+__all__ = ["GenerateError", "GenerateOptions", "GenerateSummary", "generate", "load_sources", "run_batch"]

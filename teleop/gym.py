@@ -1,0 +1,58 @@
+"""Gymnasium environments of the built-in scenes: importing this module registers them.
+
+    import gymnasium, teleop.gym
+    env = gymnasium.make("teleop/lift-panda-v0", action="ee_pose", image_size=(96, 96))
+    env = teleop.gym.make_env("lift", "my_arm.toml", cameras=("front",))
+
+One id per built-in scene and robot that can do it: `teleop/{scene}-{robot}-v0`
+(bimanual scenes with the bimanual robot, single-arm scenes with single arms).
+Options (`gymnasium.make` keywords, or `make_env`'s): control_hz, cameras,
+image_size (width, height), action (joint | ee_delta | ee_pose, as the export),
+max_seconds, seed, render_mode ("rgb_array"). See `teleop.gym_env.TeleopEnv`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+
+from scenes import BUILTIN_ROBOTS, TASKS, RobotSpec, load_robot
+from teleop.gym_env import TeleopEnv
+
+NAMESPACE = "teleop"
+ENTRY_POINT = "teleop.gym_env:TeleopEnv"
+
+
+def env_id(scene: str, robot: str) -> str:
+    return f"{NAMESPACE}/{scene}-{robot}-v0"
+
+
+def builtin_pairs() -> list[tuple[str, str]]:
+    """(scene, robot) for every built-in robot and every scene it can do."""
+    pairs = []
+    for robot in BUILTIN_ROBOTS:
+        bimanual = load_robot(robot).bimanual
+        pairs += [(scene, robot) for scene, task in TASKS.items() if task.supports(bimanual)]
+    return pairs
+
+
+def register_builtin() -> list[str]:
+    """Register (once) and list the ids of the built-in scene x robot environments."""
+    ids = []
+    for scene, robot in builtin_pairs():
+        name = env_id(scene, robot)
+        if name not in gymnasium.registry:
+            gymnasium.register(name, entry_point=ENTRY_POINT, kwargs={"scene": scene, "robot": robot})
+        ids.append(name)
+    return ids
+
+
+ENV_IDS: list[str] = register_builtin()
+
+
+def make_env(scene: str, robot: str | Path | RobotSpec = "panda", **options: Any) -> TeleopEnv:
+    """An environment for any robot, a built-in name or a PATH.toml brought by the user
+    (not wrapped: Gymnasium's checker and order-enforcing wrappers come with `gymnasium.make`)."""
+    return TeleopEnv(scene, robot, **options)
