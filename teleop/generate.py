@@ -387,10 +387,17 @@ def _drive(pool, job: Job, opts: GenerateOptions, base: int, batch: int, max_att
         n_batches = 0
         while summary.successes < opts.num:
             while len(pending) < in_flight and next_seed < max_attempts:
-                seeds = [(opts.seed + i, base + i) for i in range(next_seed, min(next_seed + batch, max_attempts))]
+                # Hand out only the attempts still expected to be needed: near the end, work beyond
+                # --num successes would be thrown away (the rate is estimated from the attempts so far).
+                rate = (summary.successes + 1) / (summary.attempts + 1)
+                deficit = math.ceil((opts.num - summary.successes) / rate) - (next_seed - summary.attempts)
+                if deficit <= 0:
+                    break
+                size = max(1, min(batch, math.ceil(deficit / pool.workers), max_attempts - next_seed))
+                seeds = [(opts.seed + i, base + i) for i in range(next_seed, next_seed + size)]
                 pending[pool.submit(seeds)] = n_batches
                 n_batches += 1
-                next_seed += len(seeds)
+                next_seed += size
             if not pending and taken not in results:
                 break
             for fut in pool.wait(set(pending)):
