@@ -441,8 +441,13 @@ def test_ctrl_c_keeps_the_saved_episodes(recorded, tmp_path):
             signal.raise_signal(signal.SIGINT)  # to this (the main) thread, as a terminal's Ctrl-C reaches Python
 
     out = tmp_path / "ds"
-    summary = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="t/int", cameras=["front"],
-                                                               image_size=(32, 32), progress=False, on_episode=interrupt))
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal, even under nohup
+    try:
+        summary = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="t/int", cameras=["front"],
+                                                                   image_size=(32, 32), progress=False,
+                                                                   on_episode=interrupt))
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert summary.interrupted and summary.episodes == 1
     assert "interrupted" in summary.line()
     ds = _open(out, "t/int")

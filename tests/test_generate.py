@@ -208,7 +208,9 @@ def test_ctrl_c_keeps_what_was_generated(sources, tmp_path):
     out = tmp_path / "gen"
     proc = subprocess.Popen([sys.executable, "-m", "teleop", "generate", *map(str, sources["lift"]), "--out", str(out),
                              "--num", "500", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            # as from a terminal, even when the tests themselves run with SIGINT ignored (nohup, &)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and len(list(out.glob("*.mcap"))) < 2:
@@ -219,6 +221,7 @@ def test_ctrl_c_keeps_what_was_generated(sources, tmp_path):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "interrupted" in stdout
     kept = sorted(out.glob("*.mcap"))
