@@ -16,7 +16,7 @@ from rich.console import Console
 
 from teleop.json_output import json_stdout, print_json
 
-MODULES = ("control", "recording", "web", "export", "devices", "generate")
+MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval")
 
 
 def run_all(quick: bool = False, only: list[str] | None = None, progress: bool = True) -> dict[str, float]:

@@ -13,11 +13,11 @@ import contextlib
 import signal
 import sys
 
-from teleop import cli_devices, cli_export, cli_generate, cli_record, cli_run, cli_serve
+from teleop import cli_devices, cli_eval, cli_export, cli_generate, cli_record, cli_run, cli_serve
 from scenes.errors import TeleopError, first_line
 from teleop.json_output import json_stdout
 
-MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export, cli_generate)
+MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export, cli_generate, cli_eval)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -43,7 +43,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the speed figures the issues name")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (rougher figures)")
-    p.add_argument("--only", default=None, help="comma list of bench modules to run (control, recording, web, export, devices)")
+    p.add_argument("--only", default=None, help="comma list of bench modules to run (control, recording, web, export, devices, generate, eval)")
     p.set_defaults(func=cmd_bench)
 
 

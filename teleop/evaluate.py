@@ -1,0 +1,292 @@
+"""`teleop eval`: run a policy in a task scene for many seeds and report how often it succeeds.
+
+The scene is a `TeleopEnv` (teleop.gym), observed and driven exactly as the export
+records it, so a policy trained on an export sees what it was trained on. Each
+episode is one scene seed (`seed`, `seed + 1`, ...), ended by the task's success or
+by `max_seconds`. The success rate comes with a 95% Wilson score interval (honest
+at 0 % and 100 % and for few episodes, unlike the normal approximation).
+
+With `record`, every rollout is recorded by the session's `Recorder` as a normal
+episode file (`source: "policy"`, `policy`: the policy's path), which replays
+bit-exact and opens in `teleop replay --serve` like any other.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from replay.export_frames import feature_key
+from scenes import RobotSpec
+from scenes.errors import TeleopError
+from teleop.gym import make_env
+from teleop.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
+from teleop.policy import IMAGE_PREFIX, Policy, PolicyMismatch
+from teleop.recording import Recorder
+
+Z95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
+DEFAULT_SEED = 1000  # past the seeds that recording and generation start from (0, 1, ...)
+DEFAULT_CONTROL_HZ = 30.0
+DEFAULT_ACTION = "joint"
+
+
+class EvalError(TeleopError, ValueError):
+    """Options that cannot evaluate (no episodes, a negative seed, ...)."""
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (n = 0: the whole [0, 1])."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    center = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, center - half), min(1.0, center + half)
+
+
+@dataclass
+class EvalOptions:
+    """How to evaluate. cameras: scene camera names or `observation.images.<camera>` keys
+    (None: the env's default); image_size (width, height); None for the env's defaults."""
+
+    scene: str = "lift"
+    robot: str | Path | RobotSpec = "panda"
+    episodes: int = 50
+    seed: int = DEFAULT_SEED
+    max_seconds: float = DEFAULT_MAX_SECONDS
+    control_hz: float = DEFAULT_CONTROL_HZ
+    action: str = DEFAULT_ACTION
+    cameras: Sequence[str] | None = None
+    image_size: tuple[int, int] | None = None
+    record: Path | None = None
+    formats: tuple[str, ...] = ("mcap",)
+    verify: str = "sync"  # the recorder's check of each saved rollout ("off" to skip)
+    progress: bool = False  # a progress bar on stderr
+    on_episode: Callable[["EpisodeOutcome"], None] | None = None
+
+
+@dataclass
+class EpisodeOutcome:
+    seed: int
+    success: bool
+    steps: int
+    seconds: float  # simulated seconds the episode ran
+    seconds_to_success: float | None
+    wall_seconds: float
+    file: str | None = None  # the recorded episode's first file
+    replay_bit_exact: bool | None = None  # the recorder's check of it (None: not recorded or not checked)
+
+
+@dataclass
+class EvalSummary:
+    policy: str
+    scene: str
+    robot: str
+    action: str
+    control_hz: float
+    cameras: list[str]
+    image_size: tuple[int, int] | None
+    max_seconds: float
+    per_episode: list[EpisodeOutcome] = field(default_factory=list)
+    wall_seconds: float = 0.0
+    steps: int = 0
+    step_seconds: float = 0.0  # wall time in env.step and the policy, the rate's denominator
+    record: str | None = None
+    interrupted: bool = False
+
+    @property
+    def episodes(self) -> int:
+        return len(self.per_episode)
+
+    @property
+    def successes(self) -> int:
+        return sum(e.success for e in self.per_episode)
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.episodes if self.episodes else 0.0
+
+    @property
+    def ci95(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.episodes)
+
+    @property
+    def mean_seconds_to_success(self) -> float | None:
+        times = [e.seconds_to_success for e in self.per_episode if e.seconds_to_success is not None]
+        return sum(times) / len(times) if times else None
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.step_seconds if self.step_seconds > 0 else 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        mean = self.mean_seconds_to_success
+        return {
+            "policy": self.policy,
+            "scene": self.scene,
+            "robot": self.robot,
+            "action": self.action,
+            "control_hz": self.control_hz,
+            "cameras": self.cameras,
+            "image_size": list(self.image_size) if self.image_size else None,
+            "max_seconds": self.max_seconds,
+            "episodes": self.episodes,
+            "successes": self.successes,
+            "success_rate": round(self.success_rate, 6),
+            "ci95": [round(v, 6) for v in self.ci95],
+            "mean_seconds_to_success": None if mean is None else round(mean, 6),
+            "per_episode": [asdict(e) for e in self.per_episode],
+            "steps": self.steps,
+            "steps_per_s": round(self.steps_per_s, 3),
+            "wall_seconds": round(self.wall_seconds, 3),
+            "record": self.record,
+            "interrupted": self.interrupted,
+        }
+
+    def lines(self) -> list[str]:
+        lo, hi = self.ci95
+        mean = self.mean_seconds_to_success
+        cams = ", ".join(self.cameras) or "no cameras"
+        size = f" {self.image_size[0]}x{self.image_size[1]}" if self.image_size and self.cameras else ""
+        out = [
+            f"policy {self.policy} on {self.scene}/{self.robot} ({self.action} actions, {self.control_hz:g} Hz, {cams}{size})",
+            f"success rate {self.successes}/{self.episodes} = {100 * self.success_rate:.1f}% "
+            f"(95% Wilson interval {100 * lo:.1f}-{100 * hi:.1f}%)" + (" [interrupted]" if self.interrupted else ""),
+            "mean time to success: " + (f"{mean:.2f} s" if mean is not None else "- (no successes)"),
+        ]
+        for e in self.per_episode:
+            what = f"success in {e.seconds_to_success:.2f} s" if e.success else f"failed ({e.seconds:.2f} s)"
+            out.append(f"  seed {e.seed}: {what}" + (f"  {e.file}" if e.file else ""))
+        if self.record is not None:
+            checked = [e.replay_bit_exact for e in self.per_episode if e.file]
+            exact = sum(bool(c) for c in checked)
+            out.append(f"recorded {len(checked)} rollouts in {self.record} ({exact} checked bit-exact)")
+        out.append(f"{self.steps} steps at {self.steps_per_s:.1f} steps/s in {self.wall_seconds:.1f} s")
+        return out
+
+
+def scene_cameras(env: TeleopEnv) -> list[str]:
+    return list(env.unwrapped.session.scene.cameras)
+
+
+def camera_names(wanted: Sequence[str], have: Sequence[str]) -> list[str]:
+    """Scene camera names for camera names or `observation.images.<camera>` keys (PolicyMismatch if absent)."""
+    by_key = {feature_key(c): c for c in have}
+    out = []
+    for name in wanted:
+        if name.startswith(IMAGE_PREFIX):
+            if name not in by_key:
+                raise PolicyMismatch(f"policy input {name}: the scene has no such camera (cameras: {', '.join(have) or 'none'})")
+            out.append(by_key[name])
+        else:
+            out.append(name)
+    return out
+
+
+def make_eval_env(opts: EvalOptions) -> TeleopEnv:
+    """The environment the options describe (policy image keys resolved to the scene's cameras)."""
+    common = dict(control_hz=opts.control_hz, action=opts.action, max_seconds=opts.max_seconds, seed=opts.seed)
+    if opts.image_size is not None:
+        common["image_size"] = opts.image_size
+    cameras = None if opts.cameras is None else list(opts.cameras)
+    if cameras and any(c.startswith(IMAGE_PREFIX) for c in cameras):
+        probe = make_env(opts.scene, opts.robot, cameras=(), **common)
+        try:
+            cameras = camera_names(cameras, scene_cameras(probe))
+        finally:
+            probe.close()
+    return make_env(opts.scene, opts.robot, cameras=cameras, **common)
+
+
+def _check(opts: EvalOptions) -> None:
+    if isinstance(opts.episodes, bool) or not isinstance(opts.episodes, int) or opts.episodes < 1:
+        raise EvalError(f"episodes must be a whole number, 1 or more, got {opts.episodes!r}")
+    if isinstance(opts.seed, bool) or not isinstance(opts.seed, int) or opts.seed < 0:
+        raise EvalError(f"seed must be a whole number >= 0, got {opts.seed!r}")
+
+
+def run_rollout(env: TeleopEnv, policy: Policy, seed: int, recorder: Recorder | None) -> EpisodeOutcome:
+    """One episode of `policy` from the scene of `seed`, recorded when a recorder is given."""
+    t0 = time.perf_counter()
+    obs, info = env.reset(seed=seed)
+    policy.reset()
+    if recorder is not None:
+        recorder.start()
+    steps = 0
+    success = bool(info["is_success"])
+    while not success:
+        obs, _, terminated, truncated, info = env.step(policy.select_action(obs))
+        steps += 1
+        success = bool(info["is_success"])
+        if terminated or truncated:
+            break
+    seconds = float(info["time"])
+    outcome = EpisodeOutcome(seed=seed, success=success, steps=steps, seconds=round(seconds, 6),
+                             seconds_to_success=round(seconds, 6) if success else None,
+                             wall_seconds=round(time.perf_counter() - t0, 6))
+    if recorder is not None:
+        files = recorder.save(complete=True)
+        if files:
+            outcome.file = str(files[0])
+            outcome.replay_bit_exact = recorder.verified.get(str(files[0]))
+    return outcome
+
+
+def _progress(enabled: bool, total: int) -> tuple[Progress | None, Any]:
+    if not enabled:
+        return None, None
+    progress = Progress(
+        TextColumn("eval"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.description}"), TimeRemainingColumn(),
+        console=Console(stderr=True), transient=True,
+    )
+    return progress, progress.add_task("", total=total)
+
+
+def evaluate(policy: Policy, opts: EvalOptions) -> EvalSummary:
+    """Run `opts.episodes` episodes of `policy` on seeds opts.seed, opts.seed + 1, ...; Ctrl-C ends early
+    with the episodes done so far (`interrupted`), the open recording kept, marked incomplete."""
+    _check(opts)
+    env = make_eval_env(opts)
+    try:
+        policy.attach(env)
+        session = env.session
+        summary = EvalSummary(
+            policy=policy.name, scene=session.scene_name, robot=session.robot.name, action=env.action_mode,
+            control_hz=session.control_hz, cameras=list(env.cameras), image_size=env.image_size if env.cameras else None,
+            max_seconds=opts.max_seconds, record=None if opts.record is None else str(opts.record),
+        )
+        recorder = None
+        if opts.record is not None:
+            recorder = Recorder(session, opts.record, opts.formats, verify=opts.verify, source="policy",
+                                provenance={"policy": policy.name, "devices": ("policy",)})
+        progress, task = _progress(opts.progress, opts.episodes)
+        wall0 = time.perf_counter()
+        with recorder if recorder is not None else contextlib.nullcontext(), progress or contextlib.nullcontext():
+            try:
+                for i in range(opts.episodes):
+                    outcome = run_rollout(env, policy, opts.seed + i, recorder)
+                    summary.per_episode.append(outcome)
+                    summary.steps += outcome.steps
+                    summary.step_seconds += outcome.wall_seconds
+                    if progress is not None:
+                        rate = summary.successes / summary.episodes
+                        progress.update(task, advance=1, description=f"success {summary.successes}/{summary.episodes} ({100 * rate:.0f}%)")
+                    if opts.on_episode is not None:
+                        opts.on_episode(outcome)
+            except KeyboardInterrupt:
+                summary.interrupted = True
+                if recorder is not None and recorder.recording:
+                    recorder.save(complete=False)
+        summary.wall_seconds = time.perf_counter() - wall0
+        return summary
+    finally:
+        env.close()
