@@ -118,7 +118,7 @@ def load_script(path: str | Path) -> list[ScriptStep]:
     return parse_script(text, str(path))
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
+def slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
     """Spherical interpolation of wxyz quaternions."""
     dot = float(np.dot(q0, q1))
     if dot < 0:
@@ -201,7 +201,7 @@ class ScriptDevice:
         self.elapsed += dt
         s = min(1.0, self.elapsed / step.duration)
         (p0, q0), (p1, q1) = self._start, self._goal
-        commands.append(Command(target_pos=p0 + s * (p1 - p0), target_quat=_slerp(q0, q1, s), arm=step.arm, source=self.name))
+        commands.append(Command(target_pos=p0 + s * (p1 - p0), target_quat=slerp(q0, q1, s), arm=step.arm, source=self.name))
         if self.elapsed >= step.duration - 1e-9:
             self.index += 1
             self.elapsed = 0.0

@@ -148,7 +148,7 @@ def _same_hemisphere(q: np.ndarray, ref: np.ndarray | None) -> np.ndarray:
     return -q if ref is not None and float(np.dot(q, ref)) < 0 else q
 
 
-def _rotation_vector(q_to: np.ndarray, q_from: np.ndarray) -> np.ndarray:
+def rotation_vector(q_to: np.ndarray, q_from: np.ndarray) -> np.ndarray:
     """World-frame axis*angle (rad) that turns q_from into q_to, the short way round."""
     conj = np.array([q_from[0], -q_from[1], -q_from[2], -q_from[3]])
     diff = np.empty(4)
@@ -190,7 +190,7 @@ class FrameBuilder:
                 if self.action == "ee_pose":
                     act += [*t_pos, *t_quat, *grip_act]
                 else:
-                    act += [*(t_pos - pos), *_rotation_vector(t_quat, q_obs), *grip_act]
+                    act += [*(t_pos - pos), *rotation_vector(t_quat, q_obs), *grip_act]
         return {
             "observation.state": np.asarray(state, dtype=np.float32),
             "observation.ee_pose": np.asarray(pose, dtype=np.float32),

@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 
 from devices.command import Command
+from devices.script import slerp
 from recorder.annotations import Subtask
 from replay.episode import Episode
 from scenes.tasks import object_pose
@@ -58,17 +59,6 @@ def matrix_to_pose(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     quat = np.empty(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(t[:3, :3]).reshape(9))
     return t[:3, 3].copy(), quat
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
-    if float(np.dot(q0, q1)) < 0.0:
-        q1 = -q1
-    dot = min(1.0, float(np.dot(q0, q1)))
-    angle = math.acos(dot)
-    if angle < 1e-6:
-        return q1.copy()
-    q = (math.sin((1 - s) * angle) * q0 + math.sin(s * angle) * q1) / math.sin(angle)
-    return q / np.linalg.norm(q)
 
 
 def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
@@ -209,7 +199,7 @@ class PlanDevice:
             s = u * u * (3.0 - 2.0 * u)  # smoothstep: starts and ends at rest
             p = p0 + s * (p1 - p0)
             p[2] += arc * math.sin(math.pi * s)
-            self._queue.append((p, _slerp(q0, q1, s), hold))
+            self._queue.append((p, slerp(q0, q1, s), hold))
         for t, open_ in zip(moved, seg.gripper_open):
             p, q = matrix_to_pose(t)
             self._queue.append((p, q, bool(open_)))

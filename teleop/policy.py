@@ -30,7 +30,7 @@ import numpy as np
 
 from devices.command import Command
 from devices.script import ScriptDevice
-from replay.export_frames import _rotation_vector, is_channel_first
+from replay.export_frames import rotation_vector, is_channel_first
 from scenes.errors import TeleopError
 
 if TYPE_CHECKING:  # annotations only
@@ -356,7 +356,7 @@ class ScriptedPolicy:
                 parts += [pos, quat]
             else:  # ee_delta: target minus the actual EE pose, in the world frame
                 ee_pos, ee_quat = session.ee_pose(k)
-                parts += [pos - ee_pos, _rotation_vector(quat, ee_quat)]
+                parts += [pos - ee_pos, rotation_vector(quat, ee_quat)]
             if arm.gripper_id is not None:
                 parts.append(np.array([self._grippers[k]]))
         return np.concatenate(parts)

@@ -115,8 +115,7 @@ def test_a_robot_brought_by_toml(tmp_path):
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     """A scripted lift episode recorded by the CLI and exported with PNG frames (exact pixels)."""
-    pytest.importorskip("lerobot")
-    from lerobot.datasets import LeRobotDataset
+    from lerobot.datasets import LeRobotDataset  # the test command installs the lerobot extra: no skip
 
     from replay.export import ExportOptions, export_dataset
 
