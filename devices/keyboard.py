@@ -58,6 +58,7 @@ BINDINGS: tuple[Binding, ...] = (
     Binding(("enter",), "save", "save the episode"),
     Binding(("backspace",), "discard", "discard the episode"),
     Binding(("n",), "reset", "reset the scene (new seed)"),
+    Binding(("p",), "policy", "hand control back to the policy (teleop serve --policy)"),
     Binding(("tab",), "arm", "switch arm (bimanual)"),
     Binding(("c",), "frame", "switch frame: world / end effector"),
     Binding(("=", "+"), "faster", f"speed up (x{SPEED_STEP})"),
@@ -299,7 +300,7 @@ class KeyboardDevice:
             action = KEY_ACTION[name]
             if action == "gripper":
                 grippers += 1
-            elif action in ("reset", "start", "save", "discard"):
+            elif action in ("reset", "start", "save", "discard", "policy"):
                 events.append(action)
             elif action == "arm":
                 self.arm = (self.arm + 1) % n_arms

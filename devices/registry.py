@@ -146,6 +146,7 @@ def _expand(word: str) -> list[str]:
 
 
 KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script")
+SERVE_DEVICES = ("gizmo", "keyboard", "spacemouse")  # what a browser session opens unless told otherwise
 
 
 def open_devices(

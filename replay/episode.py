@@ -17,7 +17,7 @@ from mcap.records import Attachment, Channel, Message, Metadata
 
 from recorder import format as schema
 from recorder.annotations import AnnotationError, read_subtasks
-from recorder.format import EpisodeMeta
+from recorder.format import CONTROL_POLICY, EpisodeMeta
 from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
 
@@ -343,7 +343,21 @@ def summarize(episode: Episode) -> dict:
         "source_episodes": list(m.source_episodes),
         "generator": dict(m.generator) if m.generator else None,
         "policy": m.policy,
+        "control": _control(episode),
         "subtasks": _subtasks(episode),
+    }
+
+
+def _control(episode: Episode) -> dict | None:
+    """Who drove (None: the episode does not record it): steps by the policy and by a person, and takeovers."""
+    control = episode.control
+    if control is None:
+        return None
+    by_policy = control == CONTROL_POLICY
+    return {
+        "policy_steps": int(by_policy.sum()),
+        "operator_steps": int((~by_policy).sum()),
+        "takeovers": int(np.count_nonzero(by_policy[:-1] & ~by_policy[1:])),
     }
 
 

@@ -14,6 +14,7 @@ LeRobot is an optional extra, imported only when an export starts.
 from __future__ import annotations
 
 import contextlib
+import json
 import re
 import shutil
 import signal
@@ -27,7 +28,9 @@ from pathlib import Path
 
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import TeleopError, first_line
-from replay.export_frames import ACTION_MODES, feature_key, features, is_channel_first, robot_layout
+from replay.export_frames import (
+    ACTION_MODES, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, robot_layout,
+)
 from replay.export_stream import EpisodeEnd, FrameStream
 from replay.render import RenderError, warm_up
 
@@ -66,6 +69,10 @@ class ExportOptions:
     on_episode: Callable[[int, int], None] | None = None  # (episodes, frames) written so far, after each save
     workers: int = 1  # > 1: shards exported in that many processes, merged by LeRobot (replay/export_parallel.py)
     ray: str | None = None  # "auto" or HOST:PORT / ray://HOST:PORT: the shards as tasks on a Ray cluster
+    # The per-frame `intervention` feature (a person, not a policy, drove the frame). None: written when
+    # an episode records who drove each step (a policy taken over in `teleop serve --policy`), or when
+    # appending to a dataset that has it.
+    intervention: bool | None = None
 
 
 @dataclass
@@ -135,6 +142,7 @@ class _Entry:
     complete: bool
     steps: int
     cameras: list[str]
+    records_control: bool = False  # its steps say who drove (a policy or a person)
 
 
 def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
@@ -160,6 +168,7 @@ def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
                 complete=m.complete and not ep.truncated,
                 steps=ep.steps,
                 cameras=list(m.cameras),
+                records_control=m.records_control,
             )
         )
     return entries
@@ -267,12 +276,12 @@ def _check_appendable(meta, spec: dict, fps: int, robot_type: str, out: Path) ->
         problems.append(f"fps {meta.fps} there, {fps} here")
     if meta.robot_type != robot_type:
         problems.append(f"robot {meta.robot_type} there, {robot_type} here")
-    theirs = {k: v for k, v in meta.features.items() if k.startswith(("observation.", "action"))}
+    theirs = {k: v for k, v in meta.features.items() if k.startswith(("observation.", "action")) or k == INTERVENTION}
     for key in sorted(set(theirs) | set(spec)):
         a, b = theirs.get(key), spec.get(key)
         if a is None or b is None:
             problems.append(f"{key} {'missing there' if a is None else 'not exported here'}")
-        elif a["dtype"] != b["dtype"] or tuple(a["shape"]) != tuple(b["shape"]) or list(a.get("names") or []) != list(b["names"]):
+        elif a["dtype"] != b["dtype"] or tuple(a["shape"]) != tuple(b["shape"]) or list(a.get("names") or []) != list(b.get("names") or []):
             problems.append(f"{key} is {a['dtype']}{list(a['shape'])} there, {b['dtype']}{list(b['shape'])} here")
     if problems:
         raise ExportError(f"cannot append: {out} does not match these episodes: " + "; ".join(problems[:4]))
@@ -413,6 +422,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     except (KeyError, ValueError) as exc:
         raise ExportError(f"{first.path}: robot_spec does not match the recorded model: {exc}") from None
     spec = features(arms, opts.action, cameras, opts.image_size, opts.video)
+    if wants_intervention(opts, chosen):
+        spec[INTERVENTION] = dict(INTERVENTION_FEATURE)
     try:
         stream = FrameStream(model, opts.image_size, cameras)  # replays and renders in a thread of its own
     except RenderError as exc:
@@ -442,6 +453,22 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     return summary
 
 
+def wants_intervention(opts: ExportOptions, chosen: list[_Entry]) -> bool:
+    """Whether the export writes `intervention`: as asked, else when an episode records who drove
+    each step, or the dataset appended to already has the feature."""
+    if opts.intervention is not None:
+        return opts.intervention
+    if any(e.records_control for e in chosen):
+        return True
+    info = opts.out / "meta" / "info.json"
+    if opts.append and info.is_file():
+        try:
+            return INTERVENTION in (json.loads(info.read_text()).get("features") or {})
+        except (OSError, ValueError):
+            return False
+    return False
+
+
 def _loader(path: Path) -> Callable[[], Episode]:
     def load() -> Episode:
         try:
@@ -460,7 +487,8 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
     keys = [feature_key(c) for c in cameras]
     channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
     loaders = [lambda: first] + [_loader(e.path) for e in chosen[1:]]
-    stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first)
+    stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first,
+                 intervention=INTERVENTION in ds.meta.features)
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
                file=sys.stderr, dynamic_ncols=True)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from recorder.format import ArmMeta, EpisodeMeta
+from recorder.format import CONTROL_POLICY, ArmMeta, EpisodeMeta
 
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -84,6 +84,19 @@ def robot_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> list[ArmLayout]:
             )
         )
     return out
+
+
+# LeRobot's name (lerobot-rollout's DAgger strategy) for "a person, not the policy, chose this frame's action".
+INTERVENTION = "intervention"
+INTERVENTION_FEATURE = {"dtype": "bool", "shape": (1,), "names": None}
+
+
+def intervention_values(control: np.ndarray | None, source: str, steps: int) -> np.ndarray:
+    """(steps, 1) bool: True where a person drove. From the recorded `control` field where the episode
+    has it (0 person, 1 policy); otherwise the whole episode is a person's unless its source is a policy."""
+    if control is not None:
+        return (np.asarray(control)[:steps] != CONTROL_POLICY).reshape(-1, 1)
+    return np.full((steps, 1), source != "policy")
 
 
 def feature_key(camera: str) -> str:

@@ -44,6 +44,7 @@ from replay.export import (
     export_dataset,
     select_episodes,
     video_decoder,
+    wants_intervention,
 )
 
 # Two shards per worker even out episodes of different lengths, once there are enough episodes for
@@ -166,7 +167,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     runs = split([e.steps for e in chosen], shard_count(len(chosen), parallel))
     # The shards' own settings: what the driver resolved, no progress or callbacks of their own.
     shard_opts = replace(opts, cameras=summary.cameras, only_success=False, progress=False, on_episode=None,
-                         workers=1, ray=None, append=False)
+                         workers=1, ray=None, append=False, intervention=wants_intervention(opts, chosen))
     opts.out.parent.mkdir(parents=True, exist_ok=True)
     parts = Path(tempfile.mkdtemp(prefix=opts.out.name + ".parts.", dir=opts.out.parent))
     shards = [_Shard(i, [chosen[k].path for k in run], sum(chosen[k].steps for k in run), parts / f"shard_{i:03d}")

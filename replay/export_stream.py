@@ -24,7 +24,7 @@ import mujoco
 
 from replay.engine import replay_states
 from replay.episode import Episode
-from replay.export_frames import FrameBuilder, robot_layout
+from replay.export_frames import INTERVENTION, FrameBuilder, intervention_values, robot_layout
 from replay.render import FastRenderer
 
 QUEUE_BYTES = 64 << 20  # frames waiting for LeRobot, at most (~200 frames of two 224x224 cameras)
@@ -45,6 +45,7 @@ class _Job:
     task: Callable[[Episode], str]
     keys: list[str]  # dataset key of each camera
     channel_first: list[bool]  # per camera, as the dataset declares it
+    intervention: bool = False  # add the per-frame `intervention` feature
 
 
 _DONE = object()
@@ -86,9 +87,10 @@ class FrameStream:
         task: Callable[[Episode], str],
         keys: Sequence[str],
         channel_first: Sequence[bool],
+        intervention: bool = False,
     ) -> None:
         """Begin producing: each callable loads one episode, in export order."""
-        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first))
+        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention)
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -151,8 +153,11 @@ class FrameStream:
                 renderer.load(model)  # seeds move objects: each episode has its own model
             build = FrameBuilder(robot_layout(ep.meta, model), job.action)
             task = job.task(ep)
+            driven = intervention_values(ep.control, ep.meta.source, ep.steps) if job.intervention else None
             for k, data in replay_states(ep, model):
                 frame = build(data, ep.ctrl[k], ep.ee_target[k])
+                if driven is not None:
+                    frame[INTERVENTION] = driven[k]
                 if renderer is not None:
                     for c, key in enumerate(job.keys):
                         frame[key] = renderer.render(data, c, job.channel_first[c])

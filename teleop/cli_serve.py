@@ -11,8 +11,7 @@ import argparse
 from pathlib import Path
 
 from teleop.cli_run import add_session_args, make_session, open_session_devices
-
-DEFAULT_DEVICES = ("gizmo", "keyboard", "spacemouse")
+from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -30,8 +29,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
+    p.add_argument("--policy", default=None, metavar="PATH",
+                   help="a LeRobot pretrained_model folder (or script:FILE) that drives; touching any device takes "
+                        "over, key p or the panel's button hands back; recorded steps say who drove")
+    p.add_argument("--policy-device", default="cpu", choices=("cpu", "cuda", "mps"),
+                   help="torch device for the policy (default cpu)")
     p.add_argument("--status-file", type=Path, default=None, help=argparse.SUPPRESS)  # JSON status for scripts/tests
-    p.set_defaults(func=cmd_serve)
+    p.set_defaults(func=cmd_serve, control_hz=None)  # None: 30 Hz, or the policy's training rate
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -42,7 +46,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     warm_up()  # find a GL backend for the camera picture while the scene compiles
     check_port_free(args.host, args.port)  # before the slow part, so a taken port fails at once
+    policy = _load_policy(args) if args.policy is not None else None
+    if args.control_hz is None:
+        args.control_hz = getattr(policy, "trained_on", None) and policy.trained_on.fps or 30.0
     session = make_session(args, verify="background", on_error="stop")
     devices, problems = open_session_devices(args, session.n_arms, serving=True)
     return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed,
-                 status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True))
+                 status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True),
+                 policy=policy)
+
+
+def _load_policy(args: argparse.Namespace):
+    """The --policy: a script, or a checkpoint read (one line if it is not one) and then loaded by LeRobot."""
+    from teleop.takeover import SCRIPT_PREFIX, load_policy
+
+    if not args.policy.startswith(SCRIPT_PREFIX):
+        from teleop.cli_export import quiet_environment
+        from teleop.policy import Checkpoint
+
+        quiet_environment()  # before LeRobot loads: nothing from the Hub, no wall of decoder warnings
+        Checkpoint(args.policy)  # a missing or wrong folder: one line before torch loads
+    return load_policy(args.policy, args.policy_device)

@@ -96,10 +96,13 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         max_seconds: float = DEFAULT_MAX_SECONDS,
         seed: int = 0,
         render_mode: str | None = None,
+        session: Session | None = None,
     ) -> None:
         _check_options(action, max_seconds, seed, render_mode)
         self.image_size = _image_size(image_size)
-        self.session = Session(scene, robot, int(seed), control_hz)
+        # session: observe and drive this live Session (a served one a policy drives) instead of
+        # building one; scene, robot, control_hz and seed are then the session's.
+        self.session = session if session is not None else Session(scene, robot, int(seed), control_hz)
         self.action_mode = action
         self.render_mode = render_mode
         self.metadata = {**TeleopEnv.metadata, "render_fps": self.session.control_hz}
@@ -142,6 +145,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
             control_hz=controller.control_hz, timestep=controller.timestep, substeps=controller.substeps,
         )
         self.arms: list[ArmLayout] = robot_layout(meta, self.model)
+        self._loaded_model = self.model
         self._frames = FrameBuilder(self.arms, self.action_mode)  # new per episode: quaternion signs start afresh
         self._scratch = mujoco.MjData(self.model)
         self._state = np.empty(controller.nstate)
@@ -178,6 +182,12 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         return self._observe()
 
     # --- observations --------------------------------------------------------
+
+    def observe(self) -> Observation:
+        """The observation of the live state, whoever stepped it (a served session between ticks)."""
+        if self.session.model is not self._loaded_model:  # the session was reset: a new model
+            self._load()
+        return self._observe()
 
     def _observe(self) -> Observation:
         """The export's frame of the live state: restored into the scratch MjData, forward-computed."""
@@ -216,10 +226,8 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
             raise EnvError(f"action has shape {action.shape}, expected {self.action_space.shape} ({self.action_mode})")
         if not np.all(np.isfinite(action)):
             raise EnvError("action has non-finite values")
-        if self.action_mode == "joint":
-            self.session.step((), ctrl=self._joint_ctrl(action))
-        else:
-            self.session.step(self._ee_commands(action))
+        commands, ctrl = self.to_step(action)
+        self.session.step(commands, ctrl=ctrl)
         self._steps += 1
         obs = self._observe()
         success = self.session.success()
@@ -244,6 +252,12 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         super().close()
 
     # --- actions -------------------------------------------------------------
+
+    def to_step(self, action: np.ndarray) -> tuple[list[Command], np.ndarray | None]:
+        """What `Session.step` takes for `action`: (commands, None) for EE actions, ((), ctrl) for joint ones."""
+        if self.action_mode == "joint":
+            return [], self._joint_ctrl(action)
+        return self._ee_commands(action), None
 
     def _joint_ctrl(self, action: np.ndarray) -> np.ndarray:
         """The whole ctrl vector for a joint action: joint targets as given, grippers open or closed."""

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from devices.base import Device, InputStamped
 from devices.command import Command
 from scenes.errors import first_line
@@ -29,6 +31,9 @@ from teleop.session import Session
 MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 
 FINITE_KINDS = ("script", "generated")  # devices that run out (a script, a generated plan); people do not
+
+# (session, the devices' commands) -> (the commands to step, a ctrl vector that replaces IK or None)
+Steer = Callable[[Session, list[Command]], tuple[list[Command], "np.ndarray | None"]]
 
 StopReason = Literal["script_end", "success", "time", "event", "stopped", "steps"]
 
@@ -123,6 +128,7 @@ def run_episode(
     before_tick: Callable[[Session], None] | None = None,
     after_tick: Callable[[Session, StepResult], None] | None = None,
     pacer: Pacer | None = None,
+    steer: Steer | None = None,
 ) -> EpisodeResult:
     """Run ticks until a stop rule fires; returns what happened.
 
@@ -140,6 +146,8 @@ def run_episode(
         (the browser session); otherwise its error ends the loop.
     guard, before_tick, after_tick: a lock held around each tick and hooks run
         inside it, for a loop that shares the session with other threads.
+    steer: turns the devices' commands into what the tick runs, (commands, ctrl or
+        None): a policy driving until the operator takes over (teleop.takeover).
     """
     if seconds is not None and seconds <= 0:
         raise ValueError("seconds must be positive")
@@ -177,7 +185,10 @@ def run_episode(
             if before_tick is not None:
                 before_tick(session)
             commands = poll_devices(session, devices, broken_devices)
-            result = session.step(commands)
+            ctrl = None
+            if steer is not None:
+                commands, ctrl = steer(session, commands)
+            result = session.step(commands, ctrl)
             if after_tick is not None:
                 after_tick(session, result)
         steps += 1

@@ -31,6 +31,7 @@ class RowFiller:
             (c["qvel"], slice(s0 + 1 + nq, s0 + 1 + nq + nv)),
         )
         self.wall_time = c["wall_time"].start
+        self.control = c["control"].start if "control" in c else None  # who drove the step (0 person, 1 policy)
         self.ctrl = c["ctrl"]
         t0, p0, g0 = c["ee_target"].start, c["ee_pose"].start, c["gripper"].start
         self.arms = [
@@ -43,9 +44,11 @@ class RowFiller:
         """The state before the tick changes anything (replay steps from it under this ctrl)."""
         mujoco.mj_getState(self.model, data, row[self.state], INTEGRATION)
 
-    def finish(self, row: np.ndarray, data: mujoco.MjData, arms) -> None:
-        """After the physics step: ctrl applied, targets, the EE poses reached, grippers."""
+    def finish(self, row: np.ndarray, data: mujoco.MjData, arms, control: float | None = None) -> None:
+        """After the physics step: ctrl applied, targets, the EE poses reached, grippers, who drove."""
         row[self.wall_time] = time.time()
+        if self.control is not None:
+            row[self.control] = 0.0 if control is None else control
         for dst, src in self.copies:
             row[dst] = row[src]
         row[self.ctrl] = data.ctrl

@@ -112,6 +112,10 @@ class Recorder:
         self.on_verified: Callable[[Path, VerifyResult | None], None] | None = None
         self.error: str | None = None  # the last write error, one line
         self.record_seconds = 0.0  # control-thread time spent recording (state capture, row filling, commit)
+        # Who drives now, stored in every step's `control` field: CONTROL_HUMAN or CONTROL_POLICY
+        # (recorder.format). None (the default): episodes have no such field. A policy session
+        # that an operator can take over sets it before each tick.
+        self.control: float | None = None
         self._filler: RowFiller | None = None
         self._row = None
         session.attach(self)
@@ -166,6 +170,7 @@ class Recorder:
             episode_index=index,
             source=self.episode_source,
             devices=self.devices,
+            records_control=self.control is not None,
         ).replace(**self.provenance)
 
     def start(self) -> None:
@@ -246,7 +251,7 @@ class Recorder:
         if writer is None or self._row is None:
             return
         t0 = time.perf_counter()
-        self._filler.finish(self._row, controller.data, controller.arms)
+        self._filler.finish(self._row, controller.data, controller.arms, self.control)
         writer.commit(commands)  # Command objects: the writer thread turns them into dicts
         self._row = None
         self.record_seconds += time.perf_counter() - t0

@@ -11,14 +11,18 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from devices.base import Device
-from devices.registry import DeviceOptions, open_devices
+from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
 from teleop.session import Session
 from teleop.web.app import WebApp
 from teleop.web.net import check_port_free, exposure_warning
 
-DEFAULT_DEVICES = ("gizmo", "keyboard", "spacemouse")  # also teleop serve's --device default
+if TYPE_CHECKING:  # annotations only
+    from teleop.policy import Policy
+
+DEFAULT_DEVICES = SERVE_DEVICES  # also teleop serve's --device default
 
 
 def serve(
@@ -31,6 +35,8 @@ def serve(
     status_file: Path | None = None,
     problems: Sequence[str] = (),
     log: Callable[[str], None] = print,
+    policy: "Policy | str | Path | None" = None,
+    policy_device: str = "cpu",
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C (or SIGTERM); returns 0, or 1 if the loop failed.
 
@@ -38,6 +44,9 @@ def serve(
     and/or started Device objects; words that cannot start are listed on the page.
     pos_speed / rot_speed: hold-to-move speeds (m/s, rad/s) for keyboard and SpaceMouse.
     An episode in progress at the end is saved, marked incomplete.
+    policy: a Policy, a LeRobot pretrained-model folder or `script:FILE`; it drives until
+    the operator touches a device, and gets control back by the key `p` or the panel's
+    button (teleop.takeover). Recorded episodes then say who drove each step.
     """
     check_port_free(host, port)
     words = [d for d in devices if isinstance(d, str)]
@@ -53,12 +62,17 @@ def serve(
         recorder.on_error = "stop"
         if recorder.verify == "sync":
             recorder.verify = "background"
+    takeover = None
     try:
+        if policy is not None:
+            takeover = _takeover(session, policy, policy_device)
         app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
-                     pos_speed=pos_speed, rot_speed=rot_speed, log=log)
+                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover)
     except BaseException:
         for d in started:
             d.close()
+        if takeover is not None:
+            takeover.close()
         raise
     warning = exposure_warning(host, port)
     if warning:
@@ -66,6 +80,8 @@ def serve(
     app.start()
     where = f", recording into {recorder.directory}" if recorder is not None else " (not recording: add --record DIR)"
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
+    if takeover is not None:
+        log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
     log(f"open {app.url} in a browser (Ctrl-C to stop)")
 
     previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started with SIGINT ignored
@@ -81,6 +97,8 @@ def serve(
         signal.signal(signal.SIGTERM, previous)
         try:
             saved = app.close()
+            if takeover is not None:
+                takeover.close()
         finally:
             signal.signal(signal.SIGINT, previous_int)  # the caller's handler again (serve is a library call too)
     for path in saved:
@@ -88,6 +106,20 @@ def serve(
     snap = app.sim.snapshot
     log(f"teleop serve: stopped; episodes saved {snap.episodes_saved}, discarded {snap.episodes_discarded}")
     return 1 if app.sim.error else 0
+
+
+def _takeover(session: Session, policy, device: str):
+    """The policy side, imported only when a policy drives (gymnasium, the export's renderer, LeRobot)."""
+    from teleop.takeover import Takeover, load_policy
+
+    if not hasattr(policy, "select_action"):
+        policy = load_policy(policy, device)
+    takeover = Takeover.for_session(session, policy)
+    recorder = session.recorder
+    if recorder is not None:  # episodes say a policy drove, which one, and (per step) when the operator did
+        recorder.source = "policy"
+        recorder.provenance["policy"] = policy.name
+    return takeover
 
 
 def _raise_interrupt(signum, frame) -> None:

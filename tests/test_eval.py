@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
@@ -135,3 +136,30 @@ def test_a_missing_folder_and_bad_episodes_are_one_line(tmp_path):
     assert_one_line_error(run_cli("eval", "--policy", str(tmp_path)), "no config.json")
     for bad in ("0", "many"):
         assert_one_line_error(run_cli("eval", "--policy", str(tmp_path), "--episodes", bad), "--episodes")
+
+
+def test_a_trained_checkpoint_drives_a_served_session_until_taken_over(trained):
+    """`teleop serve --policy` with the trained checkpoint: its cameras and rate, its actions as ctrl."""
+    from devices.gizmo import GizmoDevice
+    from teleop.loop import run_episode
+    from teleop.policy import LeRobotPolicy
+    from teleop.takeover import Takeover
+
+    policy = LeRobotPolicy.load(trained["model"])
+    with pytest.raises(PolicyMismatch, match="trained on 15 frames/s; the session runs at 30 Hz"):
+        Takeover.for_session(teleop.Session("lift", "panda", seed=0, control_hz=30), policy)
+    session = teleop.Session("lift", "panda", seed=0, control_hz=15)
+    takeover = Takeover.for_session(session, policy)
+    try:
+        assert takeover.env.cameras == ["front"] and takeover.env.image_size == (32, 32)
+        home = session.data.ctrl.copy()
+        gizmo = GizmoDevice()
+        run_episode(session, [gizmo], max_steps=5, record=False, steer=takeover.steer)
+        assert takeover.driver == "policy" and takeover.policy_steps == 5
+        assert not np.array_equal(session.data.ctrl, home)  # the policy's joint targets went to ctrl
+        assert takeover.status()["inference_ms"] > 0 and takeover.status()["observe_ms"] > 0
+        gizmo.push(0, session.target_pose()[0] + [0.0, 0.03, 0.0], session.target_pose()[1], "start")
+        run_episode(session, [gizmo], max_steps=3, record=False, steer=takeover.steer)
+        assert takeover.driver == "operator" and takeover.policy_steps == 5 and takeover.operator_steps == 3
+    finally:
+        takeover.close()

@@ -17,6 +17,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -31,6 +32,9 @@ from teleop.web.drawing import SceneDrawer
 from teleop.web.net import check_port_free, page_url
 from teleop.web.panel import Panel, PanelDevice
 from teleop.web.sim_thread import SimThread, Snapshot
+
+if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
+    from teleop.takeover import Takeover
 
 STATUS_PERIOD_S = 0.2
 
@@ -50,8 +54,10 @@ class WebApp:
         rot_speed: float = 0.8,
         camera: bool = True,
         log=print,
+        takeover: "Takeover | None" = None,
     ) -> None:
         self.session = session
+        self.takeover = takeover  # a policy driving until the operator touches a device
         self.devices = list(devices)
         self.device_problems = list(device_problems)
         self.host, self.port = host, port
@@ -76,7 +82,8 @@ class WebApp:
 
         self.gizmo = next((d for d in self.devices if d.kind == "gizmo"), None)
         self.panel_device = PanelDevice()
-        self.sim = SimThread(session, [*self.devices, self.panel_device], log=log)
+        self.sim = SimThread(session, [*self.devices, self.panel_device], log=log,
+                             steer=takeover.steer if takeover is not None else None)
         self.sim.on_saved = self._on_saved
         self.drawer = SceneDrawer(self.server, self.sim, self.gizmo)
         self.panel = Panel(self.server, self, tuple(session.scene.cameras), pos_speed, rot_speed)
@@ -241,6 +248,8 @@ class WebApp:
             "camera_problem": self.camera.problem if self.camera is not None else None,
             "devices": {d.name: self.sim.device_problems.get(d.name) or d.status() for d in self.devices},
             "devices_not_started": list(self.device_problems),
+            "driver": self.takeover.driver if self.takeover is not None else "operator",
+            "policy": self.takeover.status() if self.takeover is not None else None,
             "notes": self.notes(),
             "error": self.sim.error,
         }

@@ -83,6 +83,13 @@ class Panel(LoopThread):
         recording_on = app.session.recorder is not None
 
         self.task_md = gui.add_markdown(self._task_text(snap))
+        self.policy_md = self.handback_btn = self.takeover_btn = None
+        if app.takeover is not None:
+            with gui.add_folder("Policy"):
+                self.policy_md = gui.add_markdown(self._policy_text())
+                self.handback_btn = gui.add_button("Hand back to policy", color="green",
+                                                   hint="the policy drives again from here (key p)")
+                self.takeover_btn = gui.add_button("Take over", hint="stop the policy; you drive (any device does this too)")
         with gui.add_folder("Episode"):
             self.record_btn = gui.add_button("Record", color="red", disabled=not recording_on,
                                              hint="start recording an episode; click Stop to save it")
@@ -138,6 +145,11 @@ class Panel(LoopThread):
             push(Command(events=("reset",)))
             self._hold_label("Record")
 
+        if self.handback_btn is not None:
+            # As the keyboard's `p`: an event the loop sees in the tick it is applied.
+            self.handback_btn.on_click(lambda _: push(Command(events=("policy",))))
+            self.takeover_btn.on_click(lambda _: self.app.takeover.request("operator"))
+
         for arm, (open_btn, close_btn) in enumerate(self.gripper_buttons):
             open_btn.on_click(lambda _, arm=arm: push(Command(gripper="open", arm=arm)))
             close_btn.on_click(lambda _, arm=arm: push(Command(gripper="close", arm=arm)))
@@ -170,6 +182,23 @@ class Panel(LoopThread):
         s = self.app.session
         state = "**succeeding**" if snap.success else "not yet"
         return f"**Task:** {s.scene.task.text}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
+
+    def _policy_text(self) -> str:
+        t = self.app.takeover
+        if t.driver == "policy":
+            head = "**Driving: policy** · touch any device (gizmo, key, SpaceMouse, gripper) to take over"
+        else:
+            head = "**Driving: operator** · press **p** or *Hand back to policy* to give control back"
+        median, worst = t.inference_ms()
+        lines = [
+            head,
+            f"Inference: **{_fmt(median, 'ms')}** median, {_fmt(worst, 'ms')} max · observation {_fmt(t.observe_ms(), 'ms')}",
+            f"Takeovers: {t.takeovers} · steps by policy {t.policy_steps}, by operator {t.operator_steps}",
+            f"`{t.policy.name}`",
+        ]
+        if t.problem:
+            lines.append(f"**Policy stopped:** {t.problem}")
+        return "  \n".join(lines)
 
     def _episode_text(self, snap) -> str:
         app = self.app
@@ -219,6 +248,10 @@ class Panel(LoopThread):
     def refresh(self) -> None:
         snap = self.app.sim.snapshot
         self._set("task", self.task_md, self._task_text(snap))
+        if self.policy_md is not None:
+            self._set("policy", self.policy_md, self._policy_text())
+            self.handback_btn.disabled = self.app.takeover.driver == "policy" or self.app.takeover.problem is not None
+            self.takeover_btn.disabled = self.app.takeover.driver == "operator"
         self._set("episode", self.episode_md, self._episode_text(snap))
         self._set("devices", self.devices_md, self._devices_text())
         self._set("loop", self.loop_md, self._loop_text(snap))

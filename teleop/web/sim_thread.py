@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from teleop.controller import StepResult
-from teleop.loop import Pacer, newest_input_time, poll_devices, run_episode
+from teleop.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
 from teleop.session import Session
 from teleop.web.loop_thread import LoopThread
 
@@ -74,8 +74,10 @@ class SimThread(LoopThread):
 
     join_timeout = 5.0
 
-    def __init__(self, session: Session, devices: list, log: Callable[[str], None] = print) -> None:
+    def __init__(self, session: Session, devices: list, log: Callable[[str], None] = print,
+                 steer: Steer | None = None) -> None:
         self.session = session
+        self.steer = steer  # a policy that drives until the operator takes over (teleop.takeover)
         self.devices = list(devices)
         self.log = log
         self.lock = threading.Lock()
@@ -116,7 +118,11 @@ class SimThread(LoopThread):
             raise RuntimeError("the control loop is running")
         with self.lock:
             self._before_tick(self.session)
-            result = self.session.step(poll_devices(self.session, self.devices, self.device_problems))
+            commands = poll_devices(self.session, self.devices, self.device_problems)
+            ctrl = None
+            if self.steer is not None:
+                commands, ctrl = self.steer(self.session, commands)
+            result = self.session.step(commands, ctrl)
             self._after_tick(self.session, result)
         return self.snapshot
 
@@ -161,7 +167,7 @@ class SimThread(LoopThread):
             run_episode(
                 self.session, self.devices, realtime=True, pacer=self.pacer, stop=self._stop, record=False,
                 stop_on_script_end=False, broken_devices=self.device_problems, guard=self.lock,
-                before_tick=self._before_tick, after_tick=self._after_tick,
+                before_tick=self._before_tick, after_tick=self._after_tick, steer=self.steer,
             )
         except Exception as exc:  # noqa: BLE001 - reported on the page and by the CLI
             self.error = f"{type(exc).__name__}: {exc}"
