@@ -26,7 +26,7 @@ if [ ! -d train ]; then
     "$train" --dataset.repo_id=local/lift_gen --dataset.root="$work/ds" --policy.type=act --policy.device="$device" \
         --policy.push_to_hub=false --policy.pretrained_backbone_weights=null --steps="$steps" --batch_size="${BATCH:-8}" \
         --policy.dim_model="${DIM:-256}" --policy.dim_feedforward="$(( ${DIM:-256} * 4 ))" --policy.chunk_size=30 --policy.n_action_steps=30 \
-        --num_workers=0 --wandb.enable=false --save_freq="$steps" --log_freq=50 --output_dir="$work/train" >&2
+        --num_workers=0 --wandb.enable=false --save_freq="${SAVE_FREQ:-$steps}" --log_freq=50 --output_dir="$work/train" >&2
     echo $(( $(date +%s) - t0 )) > train_seconds
 fi
 "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene lift --episodes 50 --seed 1000 \

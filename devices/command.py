@@ -15,8 +15,9 @@ import numpy as np
 
 Frame = Literal["world", "ee"]
 GripperCommand = Literal["open", "close", "toggle"]
-Event = Literal["reset", "start", "save", "discard", "policy"]
-EVENTS: tuple[str, ...] = ("reset", "start", "save", "discard", "policy")  # "policy": hand control back to a policy
+Event = Literal["reset", "start", "save", "discard", "record", "policy"]
+# "record": start, or save when recording (one button on a pad); "policy": hand control back to a policy
+EVENTS: tuple[str, ...] = ("reset", "start", "save", "discard", "record", "policy")
 
 
 def _zeros3() -> np.ndarray:
@@ -34,8 +35,9 @@ class Command:
         the deltas are applied on top of it.
     gripper: "open", "close", "toggle" or None for no change.
     arm: which arm (0 unless bimanual).
-    events: episode events raised this tick ("reset", "start", "save", "discard"),
-        or "policy" (give control back to the policy driving a served session).
+    events: episode events raised this tick ("reset", "start", "save", "discard",
+        "record": start or save), or "policy" (give control back to the policy driving
+        a served session).
     source: the device's name, for logs and recordings.
     """
 

@@ -104,4 +104,9 @@ def discover() -> list[DeviceInfo]:
         *spacemouse_infos(),
         DeviceInfo("gizmo", "gizmo", True, "drag the target in the browser (teleop serve, or --device gizmo)"),
         DeviceInfo("script", "script", True, "replays commands from a JSON file: --device script:FILE.json"),
+        DeviceInfo("gamepad", "gamepad", True, "a pad plugged into the browser's machine (Gamepad API; teleop serve)"),
+        DeviceInfo("phone", "phone", True, "a phone's browser on the page's /phone address (WebXR or device "
+                   "orientation; needs https or an SSH tunnel; teleop serve)"),
+        DeviceInfo("webhid", "webhid", True, "a SpaceMouse plugged into the browser's machine, connected from the "
+                   "panel (WebHID, Chromium; teleop serve)"),
     ]

@@ -55,7 +55,32 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
         if arg:
             raise DeviceError(f"gizmo takes no options (got {spec!r})")
         return GizmoDevice(n_arms=options.n_arms)
-    raise DeviceError(f"unknown device {spec!r} (known: keyboard, spacemouse[:N], gizmo, script:FILE)")
+    if name in BROWSER_DEVICES:
+        return _browser_device(name, arg, options)
+    raise DeviceError(f"unknown device {spec!r} (known: {KNOWN_TEXT})")
+
+
+def _browser_device(name: str, arg: str, options: DeviceOptions) -> Device:
+    """A device the operator's browser feeds (teleop serve): gamepad[:arm=K], phone[:arm=K], webhid[:arm=K]."""
+    arm = 0
+    for token in (t.strip().lower() for t in arg.split(":") if t.strip()):
+        key, _, value = token.partition("=")
+        if key != "arm" or not value.isdigit() or int(value) >= max(options.n_arms, 1):
+            raise DeviceError(f"{name}: unknown option {token!r} (use arm=K, K below {max(options.n_arms, 1)})")
+        arm = int(value)
+    suffix = f"-arm{arm}" if arm else ""
+    if name == "gamepad":
+        from devices.gamepad import GamepadDevice
+
+        return GamepadDevice(name=f"gamepad{suffix}", arm=arm, pos_speed=options.pos_speed, rot_speed=options.rot_speed)
+    if name == "phone":
+        from devices.phone import PhoneDevice
+
+        return PhoneDevice(name=f"phone{suffix}", arm=arm)
+    from devices.webhid import WebHidSpaceMouse
+
+    kw = _spacemouse_options("", options)[1]
+    return WebHidSpaceMouse(name=f"webhid-spacemouse{suffix}", arm=arm, **kw)
 
 
 def _spacemouse_options(arg: str, options: DeviceOptions) -> tuple[int | None, dict]:
@@ -145,8 +170,11 @@ def _expand(word: str) -> list[str]:
     return [f"spacemouse:{i}" + (f":{arg}" if arg else "") for i in range(count)]
 
 
-KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script")
-SERVE_DEVICES = ("gizmo", "keyboard", "spacemouse")  # what a browser session opens unless told otherwise
+BROWSER_DEVICES = ("gamepad", "phone", "webhid")  # fed by the operator's browser (teleop serve)
+KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script", *BROWSER_DEVICES)
+KNOWN_TEXT = "keyboard, spacemouse[:N], gizmo, script:FILE, gamepad, phone, webhid"
+# What a browser session opens unless told otherwise: the page's inputs, and this machine's keyboard and SpaceMouse.
+SERVE_DEVICES = ("gizmo", "keyboard", "spacemouse", *BROWSER_DEVICES)
 
 
 def open_devices(
@@ -169,7 +197,7 @@ def open_devices(
         raise DeviceError(f"no device given: name at least one of {', '.join(KNOWN_DEVICES)}")
     for word in words if require_known else ():
         if word.partition(":")[0].strip().lower() not in KNOWN_DEVICES:
-            raise DeviceError(f"unknown device {word!r} (known: keyboard, spacemouse[:N], gizmo, script:FILE)")
+            raise DeviceError(f"unknown device {word!r} (known: {KNOWN_TEXT})")
     for word in [w for word in words for w in _expand(word)]:
         try:
             device = make_device(word, options)

@@ -181,13 +181,16 @@ class Session:
         return result
 
     def handle_event(self, event: str) -> None:
-        """start / save / discard go to the recorder (a note if there is none); reset loads the next seed."""
+        """start / save / discard go to the recorder (a note if there is none), record is start or save
+        as the recorder stands; reset loads the next seed."""
         if event == "reset":
             self.reset()
             return
-        if event not in ("start", "save", "discard"):
+        if event not in ("start", "save", "discard", "record"):
             return
         recorder = self.recorder
+        if event == "record":  # one button: start, or save the episode being recorded
+            event = "save" if recorder is not None and recorder.recording else "start"
         if recorder is None:
             if event == "start":
                 self.note("not recording: the session has no recorder (start it with a record directory)")
