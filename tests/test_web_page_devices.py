@@ -1,0 +1,183 @@
+"""Devices in the operator's browser, end to end in headless Chromium: a gamepad (navigator.getGamepads
+defined by an init script), a SpaceMouse over WebHID (navigator.hid defined the same way, fed real
+report bytes), and the phone page (scripted DeviceOrientation events and a held clutch)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from playwright import sync_api as playwright_api
+
+import tests.browser as headless
+from devices.spacemouse_protocol import encode_buttons, encode_combined
+
+GAMEPAD = r"""
+window.__pad = {axes: [0, 0, 0, 0], buttons: new Array(17).fill(0), connected: true};
+navigator.getGamepads = () => [window.__pad.connected ? {
+  id: "Xbox Wireless Controller (STANDARD GAMEPAD Vendor: 045e Product: 0b13)", index: 0, connected: true,
+  mapping: "standard", timestamp: performance.now(), axes: window.__pad.axes.slice(),
+  buttons: window.__pad.buttons.map((v) => ({pressed: v > 0.5, touched: v > 0, value: v})),
+} : null];
+"""
+
+WEBHID = r"""
+(() => {
+  const device = new EventTarget();
+  device.opened = false;
+  device.productName = "SpaceMouse Compact";
+  device.vendorId = 0x256f;
+  device.productId = 0xc635;
+  device.open = async () => { device.opened = true; };
+  window.__hidDevice = device;
+  window.__hidReport = (bytes) => {
+    const event = new Event("inputreport");
+    event.reportId = bytes[0];
+    event.data = new DataView(new Uint8Array(bytes.slice(1)).buffer);
+    event.device = device;
+    device.dispatchEvent(event);
+  };
+  const hid = new EventTarget();
+  hid.getDevices = async () => (window.__hidGranted ? [device] : []);
+  hid.requestDevice = async () => { window.__hidGranted = true; return [device]; };
+  Object.defineProperty(navigator, "hid", {value: hid});
+})();
+"""
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = headless.launch(p)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    work = tmp_path_factory.mktemp("page-devices")
+    proc = headless.ServeProcess(["--record", str(work / "eps"), "--device", "gizmo,gamepad,phone,webhid"], work)
+    yield proc
+    proc.stop()
+
+
+def _page(browser, server, init: str):
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.add_init_script(init)
+    page.goto(server.url, timeout=60000)
+    page.wait_for_selector("canvas", timeout=60000)
+    headless.dismiss_toasts(page)
+    return page
+
+
+def _target(server) -> np.ndarray:
+    return np.array(server.status()["target_pos"][0])
+
+
+def test_a_gamepad_in_the_page_drives_the_arm_and_presses_the_episode_buttons(browser, server):
+    page = _page(browser, server, GAMEPAD)
+    try:
+        server.wait_for(lambda s: "Xbox" in s["devices"]["gamepad"], what="the pad to reach the server")
+        start = _target(server)
+        page.evaluate("window.__pad.axes[1] = -1")  # left stick fully up: +x
+        t0 = time.monotonic()
+        time.sleep(1.0)
+        page.evaluate("window.__pad.axes[1] = 0")
+        held = time.monotonic() - t0
+        moved = server.wait_for(lambda s: s["target_pos"][0][0] > start[0] + 0.05, what="the stick to move +x")
+        time.sleep(0.3)
+        settled = _target(server)
+        assert settled[0] - start[0] == pytest.approx(0.15 * held, rel=0.3)  # 0.15 m/s at full deflection
+        assert abs(settled[1] - start[1]) < 0.01 and moved["recording"] is False
+
+        def press(button: int) -> None:
+            page.evaluate(f"window.__pad.buttons[{button}] = 1")
+            time.sleep(0.15)
+            page.evaluate(f"window.__pad.buttons[{button}] = 0")
+            time.sleep(0.15)
+
+        saved = server.status()["episodes_saved"]
+        press(9)  # Start: record
+        server.wait_for(lambda s: s["recording"], what="Start to begin recording")
+        press(0)  # A: gripper
+        server.wait_for(lambda s: s["gripper_open"] == [False], what="A to close the gripper")
+        press(9)  # Start again: stop and save
+        server.wait_for(lambda s: not s["recording"] and s["episodes_saved"] == saved + 1, what="Start to save")
+        page.evaluate("window.__pad.connected = false")
+        server.wait_for(lambda s: "no pad" in s["devices"]["gamepad"], what="the pad to be let go")
+    finally:
+        page.close()
+
+
+def test_a_webhid_spacemouse_in_the_page_moves_the_arm(browser, server):
+    page = _page(browser, server, WEBHID)
+    try:
+        headless.click_button(page, "Connect SpaceMouse")
+        server.wait_for(lambda s: "SpaceMouse Compact in a browser" in s["devices"]["webhid-spacemouse"],
+                        what="the WebHID device to connect")
+        start = _target(server)
+        push = list(encode_combined(0, -350, 0, 0, 0, 0))  # y toward the operator... pushed away: -y in HID
+        page.evaluate(f"window.__hidReport({json.dumps(push)})")
+        time.sleep(0.6)
+        page.evaluate(f"window.__hidReport({json.dumps(list(encode_combined(0, 0, 0, 0, 0, 0)))})")
+        moved = server.wait_for(lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - start) > 0.03,
+                                what="the reports to move the target")
+        delta = np.array(moved["target_pos"][0]) - start
+        assert delta[0] > 0.03 and abs(delta[1]) < 0.01  # pushed away from the operator (behind the robot): +x
+        time.sleep(0.3)
+        still = _target(server)
+        time.sleep(0.4)
+        np.testing.assert_allclose(_target(server), still, atol=1e-6)  # the zero report stopped it
+        button = list(encode_buttons(1))
+        page.evaluate(f"window.__hidReport({json.dumps(button)})")  # left button: the gripper
+        server.wait_for(lambda s: s["gripper_open"] == [False], what="the left button to close the gripper")
+        page.evaluate(f"window.__hidReport({json.dumps(list(encode_buttons(0)))})")
+    finally:
+        page.close()
+
+
+def _yaw(q) -> float:
+    w, x, y, z = q
+    return float(np.degrees(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))))
+
+
+def test_the_phone_page_moves_the_target_only_while_the_clutch_is_held(browser, server):
+    page = browser.new_page(viewport={"width": 400, "height": 800}, has_touch=False)
+    page.goto(server.url + "/phone", timeout=60000)
+    try:
+        page.wait_for_function("window.__teleopPhone !== undefined", timeout=30000)
+
+        def orient(alpha: float) -> None:
+            page.evaluate(f"window.dispatchEvent(new DeviceOrientationEvent('deviceorientation', "
+                          f"{{alpha: {alpha}, beta: 0, gamma: 0, absolute: true}}))")
+
+        orient(90)
+        server.wait_for(lambda s: "phone (orientation)" in s["devices"]["phone"], what="the phone to connect")
+        start = server.status()["target_quat"][0]
+        orient(120)  # turned, clutch up: nothing
+        time.sleep(0.4)
+        assert _yaw(server.status()["target_quat"][0]) == pytest.approx(_yaw(start), abs=0.1)
+
+        box = page.locator("#clutch").bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        orient(120)
+        time.sleep(0.3)
+        for alpha in range(121, 151, 3):  # 30 degrees more with the clutch held
+            orient(alpha)
+            time.sleep(0.03)
+        orient(150)
+        turned = server.wait_for(lambda s: abs(_yaw(s["target_quat"][0]) - _yaw(start) - 30) < 2,
+                                 what="the held clutch to turn the target")
+        page.mouse.up()
+        time.sleep(0.3)
+        orient(90)  # back, clutch up
+        time.sleep(0.4)
+        assert _yaw(server.status()["target_quat"][0]) == pytest.approx(_yaw(turned["target_quat"][0]), abs=0.5)
+        was = server.status()["gripper_open"][0]
+        page.locator("#gripper").click()
+        server.wait_for(lambda s: s["gripper_open"] == [not was], what="the phone's gripper button")
+    finally:
+        page.close()
