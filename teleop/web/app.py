@@ -27,6 +27,7 @@ from devices.base import SpeedControlled
 from replay import VerifyResult
 from teleop.errors import UsageError
 from teleop.session import Session
+from teleop.web.access import Gate, start_guarded, url_with_token
 from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
 from teleop.web.drawing import SceneDrawer
 from teleop.web.net import check_port_free, page_url
@@ -55,6 +56,7 @@ class WebApp:
         camera: bool = True,
         log=print,
         takeover: "Takeover | None" = None,
+        token: str | None = None,
     ) -> None:
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
@@ -69,11 +71,14 @@ class WebApp:
         self._status_due = 0.0
         self._closed = False
         self.url = page_url(host, port)
+        self.gate = Gate(token, port)  # token None: open (loopback, or --no-token)
+        self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
 
         if session.recorder is not None:
             session.recorder.on_verified = self._on_verified
         check_port_free(host, port)
-        self.server = viser.ViserServer(host=host, port=port, label="teleop", verbose=False)
+        self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
+                                    lambda server: server.stop(), self.gate, {})
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
@@ -210,6 +215,7 @@ class WebApp:
                 objects[model.body(model.jnt_bodyid[j]).name] = [round(float(v), 6) for v in snap.qpos[adr:adr + 3]]
         return {
             "url": self.url,
+            "token_required": self.gate.token is not None,
             "pid": os.getpid(),
             "wall_time": time.time(),
             "scene": session.scene_name,
