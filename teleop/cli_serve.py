@@ -61,7 +61,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     devices, problems = open_session_devices(args, session.n_arms, serving=True)
     return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed,
                  status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True),
-                 policy=policy, token=token, no_token=args.no_token)
+                 policy=policy, token=token, no_token=args.no_token,
+                 page_keyboard=any(w.strip().partition(":")[0].lower() == "keyboard" for w in args.device.split(",")))
 
 
 def _load_policy(args: argparse.Namespace):

@@ -40,6 +40,7 @@ def serve(
     policy_device: str = "cpu",
     token: str | None = None,
     no_token: bool = False,
+    page_keyboard: bool | None = None,
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C (or SIGTERM); returns 0, or 1 if the loop failed.
 
@@ -53,11 +54,16 @@ def serve(
     token: the secret every browser must bring (`?token=...` in the printed URL); default
     TELEOP_TOKEN, else none on loopback and a random one on any other host.
     no_token: serve a non-loopback host with no token (trusted networks; warns on stderr).
+    page_keyboard: keys typed in the page drive as the keyboard does (default: when a keyboard
+    is among `devices`, started or not).
     """
     token = resolve_token(host, token, no_token)  # a bad combination fails before anything starts
     check_port_free(host, port)
     words = [d for d in devices if isinstance(d, str)]
     started = [d for d in devices if not isinstance(d, str)]
+    if page_keyboard is None:
+        page_keyboard = any(w.strip().partition(":")[0].lower() == "keyboard" for w in words) or \
+            any(d.kind == "keyboard" for d in started)
     problems = list(problems)
     if words:
         options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
@@ -74,7 +80,8 @@ def serve(
         if policy is not None:
             takeover = _takeover(session, policy, policy_device)
         app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
-                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token)
+                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token,
+                     page_keyboard=page_keyboard)
     except BaseException:
         for d in started:
             d.close()

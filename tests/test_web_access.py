@@ -96,7 +96,8 @@ def test_serve_rejects_bad_token_flags_in_one_line(args, env, words):
 # -- a served session on 0.0.0.0 ------------------------------------------------
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    proc = headless.ServeProcess(["--host", "0.0.0.0", "--device", "gizmo"], tmp_path_factory.mktemp("serve"))
+    proc = headless.ServeProcess(["--host", "0.0.0.0", "--device", "gizmo,keyboard"], tmp_path_factory.mktemp("serve"),
+                                 env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})  # keys from the page only
     yield proc
     proc.stop()
 
@@ -142,11 +143,11 @@ def test_the_websocket_without_the_token_is_refused_and_with_it_accepted(server,
     ws_url = server.url.replace("http://", "ws://")
     for url, kwargs in ((ws_url, {}), (ws_url + "/teleop/input", {}), (ws_url + "/?token=wrong-wrong-wrong", {})):
         with pytest.raises(InvalidStatus) as refused:
-            asyncio.run(_ws_first_message(url, **kwargs))
+            headless.run_async(_ws_first_message(url, **kwargs))
         assert refused.value.response.status_code == 403
-    assert asyncio.run(_ws_first_message(ws_url + "/?token=" + token))  # viser's first message arrives
+    assert headless.run_async(_ws_first_message(ws_url + "/?token=" + token))  # viser's first message arrives
     cookie = {"additional_headers": {"Cookie": f"teleop_token_{server.port}={token}"}}
-    assert asyncio.run(_ws_first_message(ws_url, **cookie))
+    assert headless.run_async(_ws_first_message(ws_url, **cookie))
 
 
 @pytest.fixture(scope="module")
@@ -174,6 +175,9 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
     page = headless.open_page(browser, server.url + "/?token=" + token, size=PAGE_SIZE)
     try:
         server.wait_for(lambda s: s["clients"] >= 1, what="the page to connect")
+        # The page's key script got its input channel open too, past the token check.
+        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=30000)
+        assert server.wait_for(lambda s: s["input"]["connections"] >= 1, what="the input channel")["input_dropped"] == 0
         time.sleep(2.0)
         headless.dismiss_toasts(page)
         before = server.status()
@@ -188,5 +192,6 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
         page.goto(server.url, timeout=60000)
         page.wait_for_selector("canvas", timeout=60000)
         server.wait_for(lambda s: s["clients"] >= 1, what="the page to connect again by its cookie")
+        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=30000)
     finally:
         page.close()
