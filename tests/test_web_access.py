@@ -195,3 +195,26 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
         page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=30000)
     finally:
         page.close()
+
+
+@pytest.mark.parametrize("args, needs_token", [
+    (("--host", "0.0.0.0", "--no-token"), False),  # a trusted network: open, with a warning
+    (("--token", "loopback-secret"), True),  # loopback, but a token was given: it is required
+])
+def test_no_token_opens_another_host_with_a_warning_and_a_given_token_guards_loopback(args, needs_token, tmp_path):
+    proc = headless.ServeProcess(["--device", "gizmo", *args], tmp_path)
+    try:
+        log = proc.log()
+        warnings = [line for line in log.splitlines() if line.startswith("warning:")]
+        assert proc.status()["token_required"] is needs_token
+        if needs_token:
+            assert not warnings
+            assert f"open {proc.url}/?token=loopback-secret in a browser" in log
+            assert _get(proc.url + "/")[0] == 403 and _get(proc.url + "/?token=loopback-secret")[0] == 200
+        else:
+            assert len(warnings) == 1 and "--no-token" in warnings[0] and "anyone who can reach" in warnings[0]
+            assert f"open {proc.url} in a browser" in log
+            assert _get(proc.url + "/")[0] == 200
+            assert headless.run_async(_ws_first_message(proc.url.replace("http://", "ws://")))
+    finally:
+        proc.stop()
