@@ -103,6 +103,11 @@
     closing = true;
     if (socket !== null) socket.close();
   });
+  window.addEventListener("pageshow", (event) => {
+    if (!event.persisted) return; // back from the back-forward cache: talk again
+    closing = false;
+    if (socket === null && retry === null) connect();
+  });
 
   window.__teleopInput = {
     configure(next) {
