@@ -85,38 +85,78 @@ def bindings_table() -> str:
     return "\n".join(f"  {k.ljust(width)}  {h}" for k, h in rows)
 
 
+LOCAL = "local"  # the source of keys read on this machine (pynput)
+
+
 class KeyState:
     """Which bound keys are down and for how long since the last `take`; thread-safe, no pynput.
 
     Fed by the listener thread (press/release with a monotonic time), read by
-    the control loop (`take`).
+    the control loop (`take`). Several sources may feed one state (this
+    machine's keyboard and browser pages): a key is down while any source
+    holds it, so the same physical press seen twice (pynput and a browser on
+    the same desktop) moves once, and one source letting go, or going away
+    (`release_source`), does not end another's hold.
     """
 
     def __init__(self, now: float) -> None:
         self._lock = threading.Lock()
         self._down: dict[str, float] = {}
+        self._holders: dict[str, set[str]] = {}
         self._held: dict[str, float] = {}
         self._released: dict[str, float] = {}
         self._presses: list[str] = []
         self._last_take = now
         self.last_event_time = 0.0  # monotonic time of the last bound key event
+        self.last_source: str | None = None  # the source of the newest press
 
-    def press(self, name: str, t: float) -> None:
+    def press(self, name: str, t: float, source: str = LOCAL) -> None:
         with self._lock:
             self.last_event_time = t
-            if name in self._down:
+            holders = self._holders.setdefault(name, set())
+            if source in holders:
                 return  # autorepeat while held
+            holders.add(source)
+            self.last_source = source
+            if name in self._down:
+                return  # already held by another source
             self._down[name] = t
             if t - self._released.get(name, -1e9) > REPEAT_GAP:
                 self._presses.append(name)
 
-    def release(self, name: str, t: float) -> None:
+    def release(self, name: str, t: float, source: str = LOCAL) -> None:
         with self._lock:
             self.last_event_time = t
-            start = self._down.pop(name, None)
-            self._released[name] = t
-            if start is not None:
-                self._held[name] = self._held.get(name, 0.0) + t - max(start, self._last_take)
+            self._release(name, t, source)
+
+    def _release(self, name: str, t: float, source: str) -> None:
+        holders = self._holders.get(name)
+        if holders:
+            holders.discard(source)
+            if holders:
+                return  # another source still holds it
+        self._holders.pop(name, None)
+        start = self._down.pop(name, None)
+        self._released[name] = t
+        if start is not None:
+            self._held[name] = self._held.get(name, 0.0) + t - max(start, self._last_take)
+
+    def release_source(self, source: str, t: float) -> list[str]:
+        """Let go of every key `source` holds (it lost focus or went away); returns their names."""
+        with self._lock:
+            names = [name for name, holders in self._holders.items() if source in holders]
+            for name in names:
+                self._release(name, t, source)
+            return names
+
+    def holding(self) -> dict[str, list[str]]:
+        """source -> the keys it holds now."""
+        with self._lock:
+            out: dict[str, list[str]] = {}
+            for name, holders in self._holders.items():
+                for source in holders:
+                    out.setdefault(source, []).append(name)
+            return {source: sorted(names) for source, names in out.items()}
 
     def take(self, now: float) -> tuple[dict[str, float], list[str]]:
         """(fraction of the time since the last take each key was held, keys newly pressed)."""
@@ -134,6 +174,7 @@ class KeyState:
     def clear(self) -> None:
         with self._lock:
             self._down.clear()
+            self._holders.clear()
             self._held.clear()
 
 

@@ -29,6 +29,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
+    p.add_argument("--token", default=None, metavar="TEXT",
+                   help="the secret a browser must bring (the printed URL carries it as ?token=...); default: "
+                        "$TELEOP_TOKEN, else a random one when --host is not loopback (loopback needs none)")
+    p.add_argument("--no-token", action="store_true",
+                   help="serve a non-loopback --host with no token (trusted networks only; prints a warning)")
     p.add_argument("--policy", default=None, metavar="PATH",
                    help="a LeRobot pretrained_model folder (or script:FILE) that drives; touching any device takes "
                         "over, key p or the panel's button hands back; recorded steps say who drove")
@@ -39,6 +44,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    from teleop.web.access import resolve_token
+
+    token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     # Lazy: the browser server (viser, mjviser) takes 1-2 s to import; only this command needs it.
     from teleop.serve import serve
     from teleop.web.camera_view import warm_up
@@ -53,7 +61,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     devices, problems = open_session_devices(args, session.n_arms, serving=True)
     return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed,
                  status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True),
-                 policy=policy)
+                 policy=policy, token=token, no_token=args.no_token,
+                 page_keyboard=any(w.strip().partition(":")[0].lower() == "keyboard" for w in args.device.split(",")))
 
 
 def _load_policy(args: argparse.Namespace):

@@ -16,8 +16,9 @@ from typing import TYPE_CHECKING
 from devices.base import Device
 from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
 from teleop.session import Session
+from teleop.web.access import resolve_token
 from teleop.web.app import WebApp
-from teleop.web.net import check_port_free, exposure_warning
+from teleop.web.net import check_port_free, exposure_warning, is_loopback
 
 if TYPE_CHECKING:  # annotations only
     from teleop.policy import Policy
@@ -37,6 +38,9 @@ def serve(
     log: Callable[[str], None] = print,
     policy: "Policy | str | Path | None" = None,
     policy_device: str = "cpu",
+    token: str | None = None,
+    no_token: bool = False,
+    page_keyboard: bool | None = None,
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C (or SIGTERM); returns 0, or 1 if the loop failed.
 
@@ -47,10 +51,19 @@ def serve(
     policy: a Policy, a LeRobot pretrained-model folder or `script:FILE`; it drives until
     the operator touches a device, and gets control back by the key `p` or the panel's
     button (teleop.takeover). Recorded episodes then say who drove each step.
+    token: the secret every browser must bring (`?token=...` in the printed URL); default
+    TELEOP_TOKEN, else none on loopback and a random one on any other host.
+    no_token: serve a non-loopback host with no token (trusted networks; warns on stderr).
+    page_keyboard: keys typed in the page drive as the keyboard does (default: when a keyboard
+    is among `devices`, started or not).
     """
+    token = resolve_token(host, token, no_token)  # a bad combination fails before anything starts
     check_port_free(host, port)
     words = [d for d in devices if isinstance(d, str)]
     started = [d for d in devices if not isinstance(d, str)]
+    if page_keyboard is None:
+        page_keyboard = any(w.strip().partition(":")[0].lower() == "keyboard" for w in words) or \
+            any(d.kind == "keyboard" for d in started)
     problems = list(problems)
     if words:
         options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
@@ -67,14 +80,15 @@ def serve(
         if policy is not None:
             takeover = _takeover(session, policy, policy_device)
         app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
-                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover)
+                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token,
+                     page_keyboard=page_keyboard)
     except BaseException:
         for d in started:
             d.close()
         if takeover is not None:
             takeover.close()
         raise
-    warning = exposure_warning(host, port)
+    warning = exposure_warning(host, port) if token is None else None
     if warning:
         print(warning, file=sys.stderr)
     app.start()
@@ -82,7 +96,9 @@ def serve(
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
     if takeover is not None:
         log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
-    log(f"open {app.url} in a browser (Ctrl-C to stop)")
+    log(f"open {app.page_url} in a browser (Ctrl-C to stop)")
+    if not is_loopback(host) and host in ("0.0.0.0", "", "::"):
+        log("  (from another machine: this machine's name or address in place of 127.0.0.1)")
 
     previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started with SIGINT ignored
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)

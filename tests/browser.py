@@ -157,6 +157,31 @@ def click_button(page, label: str, timeout_s: float = 15.0) -> None:
     button.dispatch_event("click", timeout=timeout_s * 1000)
 
 
+def run_async(coroutine):
+    """Run a coroutine to the end on a thread of its own and return its result (or raise its error).
+
+    Playwright's sync API keeps an asyncio loop running on the test's thread,
+    where `asyncio.run` refuses to start, so a websocket client runs beside it.
+    """
+    import asyncio
+    import threading
+
+    out: dict = {}
+
+    def main() -> None:
+        try:
+            out["result"] = asyncio.run(coroutine)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            out["error"] = exc
+
+    thread = threading.Thread(target=main, daemon=True)
+    thread.start()
+    thread.join()
+    if "error" in out:
+        raise out["error"]
+    return out["result"]
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -3,11 +3,12 @@
     control loop (SimThread)  --snapshots-->  drawing (SceneDrawer, <= 60 Hz)
           ^  polls devices                    camera picture (CameraFeed, a few Hz)
           |                                   panel text (Panel, 4 Hz) + status file
-    gizmo / panel / keyboard / SpaceMouse
+    gizmo / panel / keyboard / SpaceMouse / keys in the page (input channel)
 
-Browsers only ever talk to viser; viser's callbacks only write into device
-mailboxes. So any number of browsers can watch, and one closing mid-episode
-changes nothing for the recording. Saved episodes are checked for exact
+Browsers only ever talk to viser and to the page's input channel on the same
+port, both behind the session token (access); their callbacks only write into
+device mailboxes and key states. So any number of browsers can watch, and one
+closing mid-episode changes nothing for the recording. Saved episodes are checked for exact
 replay on a worker thread, so a save never stalls the real-time loop.
 """
 
@@ -22,14 +23,20 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 import viser
+from viser._messages import RunJavascriptMessage  # viser's way to run a script in a page (add_plotly uses it)
 
 from devices.base import SpeedControlled
+from devices.keyboard import KeyboardDevice
 from replay import VerifyResult
 from teleop.errors import UsageError
 from teleop.session import Session
+from teleop.web.access import Gate, start_guarded, url_with_token
 from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
 from teleop.web.drawing import SceneDrawer
+from teleop.web.input_channel import PATH as INPUT_PATH
+from teleop.web.input_channel import InputChannel
 from teleop.web.net import check_port_free, page_url
+from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys
 from teleop.web.panel import Panel, PanelDevice
 from teleop.web.sim_thread import SimThread, Snapshot
 
@@ -55,6 +62,8 @@ class WebApp:
         camera: bool = True,
         log=print,
         takeover: "Takeover | None" = None,
+        token: str | None = None,
+        page_keyboard: bool = False,
     ) -> None:
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
@@ -69,11 +78,24 @@ class WebApp:
         self._status_due = 0.0
         self._closed = False
         self.url = page_url(host, port)
+        self.gate = Gate(token, port)  # token None: open (loopback, or --no-token)
+        self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
 
         if session.recorder is not None:
             session.recorder.on_verified = self._on_verified
+        # Keys typed in the page: into this machine's keyboard device when one runs, else a device of their own.
+        self.input = InputChannel()
+        self.page_keys: PageKeys | None = None
+        if page_keyboard:
+            keyboard = next((d for d in self.devices if isinstance(d, KeyboardDevice)), None)
+            if keyboard is None:
+                keyboard = PageKeyboardDevice(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
+                keyboard.start()
+                self.devices.append(keyboard)
+            self.page_keys = self.input.listener = PageKeys(keyboard)
         check_port_free(host, port)
-        self.server = viser.ViserServer(host=host, port=port, label="teleop", verbose=False)
+        self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
+                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle})
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
@@ -95,8 +117,8 @@ class WebApp:
             )
         elif camera:
             self.panel.camera_failed("this scene has no cameras")
-        self.server.on_client_connect(lambda _client: self._clients_changed())
-        self.server.on_client_disconnect(lambda _client: self._clients_changed())
+        self.server.on_client_connect(self._client_connected)
+        self.server.on_client_disconnect(self._client_disconnected)
 
     # -- life cycle ------------------------------------------------------
     def start(self) -> None:
@@ -117,6 +139,8 @@ class WebApp:
         if self.camera is not None:
             self.camera.stop()
         self.drawer.stop()
+        if self.page_keys is not None:
+            self.page_keys.release_all()
         self.sim.stop()
         recorder = self.session.recorder
         before = len(recorder.paths) if recorder is not None else 0
@@ -142,6 +166,18 @@ class WebApp:
         return True
 
     # -- hooks from the threads ------------------------------------------
+    def _client_connected(self, client: viser.ClientHandle) -> None:
+        if self.page_keys is not None:
+            # The page's key script, with this page's client id; viser has no public call for this.
+            script = RunJavascriptMessage(source=self.page_keys.script(client.client_id))
+            client._websock_connection.queue_message(script)  # noqa: SLF001
+        self._clients_changed()
+
+    def _client_disconnected(self, client: viser.ClientHandle) -> None:
+        if self.page_keys is not None:
+            self.page_keys.release_client(client.client_id)
+        self._clients_changed()
+
     def _clients_changed(self) -> None:
         count = len(self.server.get_clients())
         if self.gizmo is not None:
@@ -210,6 +246,7 @@ class WebApp:
                 objects[model.body(model.jnt_bodyid[j]).name] = [round(float(v), 6) for v in snap.qpos[adr:adr + 3]]
         return {
             "url": self.url,
+            "token_required": self.gate.token is not None,
             "pid": os.getpid(),
             "wall_time": time.time(),
             "scene": session.scene_name,
@@ -248,6 +285,9 @@ class WebApp:
             "camera_problem": self.camera.problem if self.camera is not None else None,
             "devices": {d.name: self.sim.device_problems.get(d.name) or d.status() for d in self.devices},
             "devices_not_started": list(self.device_problems),
+            "input_dropped": self.input.dropped,
+            "input": self.input.status(),
+            "page_keyboard": self.page_keys.state() if self.page_keys is not None else None,
             "driver": self.takeover.driver if self.takeover is not None else "operator",
             "policy": self.takeover.status() if self.takeover is not None else None,
             "notes": self.notes(),

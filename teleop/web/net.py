@@ -3,7 +3,8 @@
 viser would listen on every interface and quietly move to the next port if
 the one asked for is taken; an operator then opens the wrong page or exposes
 a robot to the network without meaning to. So the host is always passed on,
-a taken port is an error, and any host other than loopback gets a warning.
+a taken port is an error, and a host other than loopback needs a token
+(teleop.web.access) or, with --no-token, gets a warning.
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from teleop.errors import UsageError
 __all__ = ["check_port_free", "exposure_warning", "is_loopback", "page_url"]
 
 def exposure_warning(host: str, port: int) -> str | None:
-    """The warning to print when the session is reachable from other machines."""
+    """The warning to print when the session is reachable from other machines without a token."""
     if is_loopback(host):
         return None
     return (
-        f"warning: listening on {host}:{port}: anyone who can reach this port can drive the robot session "
-        "and start, save or discard recordings (there is no login); use --host 127.0.0.1 to keep it local"
+        f"warning: --no-token: listening on {host}:{port} without a token: anyone who can reach this port can "
+        "drive the robot session and start, save or discard recordings; drop --no-token, or use --host 127.0.0.1"
     )
 
 

@@ -17,6 +17,7 @@ import viser
 
 from devices.command import Command
 from teleop.web.loop_thread import LoopThread
+from teleop.web.page_keyboard import PageKeyboardDevice
 
 REFRESH_HZ = 4.0
 POS_SPEED_RANGE = (0.01, 0.5)  # m/s
@@ -223,6 +224,9 @@ class Panel(LoopThread):
         for d in self.app.devices:
             problem = self.app.sim.device_problems.get(d.name)
             rows.append(f"- **{d.name}**: {problem or d.status()}")
+        keys = self.app.page_keys
+        if keys is not None and not isinstance(keys.keyboard, PageKeyboardDevice):
+            rows.append(f"- **{keys.keyboard.name}** also reads {keys.describe()}")  # pages feed this machine's keyboard
         for line in self.app.device_problems:
             name, _, reason = line.partition(": ")
             rows.append(f"- **{name}**: not started ({reason})")

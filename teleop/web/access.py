@@ -1,0 +1,217 @@
+"""Who may open a served session: a token on every page request and websocket upgrade.
+
+viser 1.1 serves its page and its websocket from one `websockets` server with
+no login and no Origin check, so on any host but loopback anyone who can reach
+the port could watch and drive the robot. A session listening elsewhere
+therefore requires a secret token (`--token`, `TELEOP_TOKEN`, or a random one),
+printed in the URL as `?token=...`.
+
+Where the token travels:
+- the page request carries it in the query (`/?token=...`); the answer sets a
+  cookie (`HttpOnly`, `SameSite=Strict`, named per port because cookies are
+  per host, not per port), so the page's own later requests and its
+  websockets, which viser opens at the bare URL without the query, carry it
+  too. A cookie is sent by the browser on every same-origin request whatever
+  the page does, which is why it was chosen over checking `Referer` (dropped by
+  privacy settings and referrer policies) or rewriting viser's client;
+- scripts may put it in the query of any request, websockets included.
+
+A request without the right token gets HTTP 403, websocket upgrades included,
+before viser sees it. The check is installed by wrapping the one call through
+which viser starts its server (`websockets.asyncio.server.serve`, a public
+`websockets` API) while `ViserServer` starts, so viser's own serving code is
+used unchanged; the same wrapper routes extra websocket paths (the page's
+input channel) to our handlers on the same port, so one SSH tunnel is enough.
+If a viser release stopped going through that call, starting fails rather than
+serving without the check.
+"""
+
+from __future__ import annotations
+
+import hmac
+import http
+import inspect
+import os
+import re
+import secrets
+import threading
+from collections.abc import Awaitable, Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TypeVar
+from urllib.parse import parse_qs, quote, urlsplit
+
+import websockets.asyncio.server
+from websockets.asyncio.server import ServerConnection
+from websockets.http11 import Request, Response
+
+from teleop.errors import UsageError
+from teleop.web.net import is_loopback
+
+TOKEN_ENV = "TELEOP_TOKEN"
+TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,128}")  # goes into URLs and cookies unescaped
+COOKIE_PREFIX = "teleop_token_"
+
+Handler = Callable[[ServerConnection], Awaitable[None]]
+ProcessRequest = Callable[[ServerConnection, Request], "Response | None | Awaitable[Response | None]"]
+T = TypeVar("T")
+
+
+def resolve_token(host: str, token: str | None = None, no_token: bool = False,
+                  environ: Mapping[str, str] | None = None) -> str | None:
+    """The token a session on `host` requires, or None when it is open.
+
+    An explicit token (`token`, else the TELEOP_TOKEN environment variable) is
+    always required, even on loopback; with neither, loopback stays open (as
+    before tokens existed) and any other host gets a random token. `no_token`
+    opens any host (the caller warns) and wins over the environment, but not
+    over an explicit `token`: asking for both is a usage error.
+    """
+    environ = os.environ if environ is None else environ
+    if token is not None and no_token:
+        raise UsageError("--token and --no-token contradict each other: give one")
+    if no_token:
+        return None
+    source = "--token"
+    if token is None and environ.get(TOKEN_ENV):
+        token, source = environ[TOKEN_ENV], TOKEN_ENV
+    if token is not None:
+        if not TOKEN_PATTERN.fullmatch(token):
+            raise UsageError(f"{source}: a token is 8 to 128 characters from A-Z a-z 0-9 . _ ~ -")
+        return token
+    return None if is_loopback(host) else secrets.token_urlsafe(18)
+
+
+def url_with_token(url: str, token: str | None) -> str:
+    """The page URL to print: `http://host:port/?token=...` (unchanged without a token)."""
+    return url if token is None else f"{url.rstrip('/')}/?token={quote(token, safe='')}"
+
+
+@dataclass(frozen=True)
+class Gate:
+    """The token check for one server; `token=None` lets every request through."""
+
+    token: str | None
+    port: int
+
+    @property
+    def cookie_name(self) -> str:
+        return f"{COOKIE_PREFIX}{self.port}"
+
+    def query_token(self, request: Request) -> str | None:
+        values = parse_qs(urlsplit(request.path).query).get("token")
+        return values[0] if values else None
+
+    def cookie_token(self, request: Request) -> str | None:
+        for header in request.headers.get_all("Cookie"):
+            for part in header.split(";"):
+                name, eq, value = part.strip().partition("=")
+                if eq and name == self.cookie_name:
+                    return value.strip().strip('"')
+        return None
+
+    def _matches(self, candidate: str | None) -> bool:
+        return (self.token is not None and candidate is not None
+                and hmac.compare_digest(candidate.encode("utf-8", "replace"), self.token.encode()))
+
+    def allows(self, request: Request) -> bool:
+        """True when no token is required or the request carries the right one (query or cookie)."""
+        if self.token is None:
+            return True
+        return self._matches(self.query_token(request)) or self._matches(self.cookie_token(request))
+
+    def set_cookie(self) -> str:
+        """The Set-Cookie value that lets the page's later requests and websockets in."""
+        return f"{self.cookie_name}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+
+    def wants_cookie(self, request: Request) -> bool:
+        """A page request that brought the token in its query (so the browser should keep it)."""
+        return self.token is not None and self._matches(self.query_token(request))
+
+
+def same_origin(request: Request) -> bool:
+    """A browser's websocket from a page of this server (its Origin names the Host asked for), or a
+    non-browser client (no Origin). Keeps other web sites' pages off a channel that drives the robot."""
+    origin = request.headers.get("Origin")
+    if origin is None:
+        return True
+    host = request.headers.get("Host", "")
+    return urlsplit(origin).netloc.lower() == host.lower() and host != ""
+
+
+def _is_upgrade(request: Request) -> bool:
+    return request.headers.get("Upgrade", "").lower() == "websocket"
+
+
+def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler]) -> ProcessRequest:
+    """viser's `process_request` behind the token check; our websocket paths checked for Origin too."""
+
+    async def process_request(connection: ServerConnection, request: Request) -> Response | None:
+        if not gate.allows(request):
+            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: this session needs its token "
+                                      "(open the URL that teleop serve printed, with ?token=...)\n")
+        path = urlsplit(request.path).path
+        if _is_upgrade(request) and path in routes:
+            if not same_origin(request):
+                return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")
+            return None
+        response = inner(connection, request) if inner is not None else None
+        if inspect.isawaitable(response):
+            response = await response
+        if response is not None and gate.token is not None:
+            response.headers["Referrer-Policy"] = "no-referrer"  # the token never leaves in a Referer
+            response.headers["Cache-Control"] = "no-store"
+            if gate.wants_cookie(request) and response.status_code == http.HTTPStatus.OK:
+                response.headers["Set-Cookie"] = gate.set_cookie()
+        return response
+
+    return process_request
+
+
+def route(inner: Handler, routes: Mapping[str, Handler]) -> Handler:
+    """viser's websocket handler, with our paths sent to our handlers instead."""
+
+    async def handler(connection: ServerConnection) -> None:
+        target = routes.get(urlsplit(connection.request.path).path) if connection.request is not None else None
+        await (target or inner)(connection)
+
+    return handler
+
+
+_SERVE_LOCK = threading.Lock()  # one guarded start at a time: the wrapper is process-wide while it lasts
+
+
+@contextmanager
+def _guarded_serve(gate: Gate, routes: Mapping[str, Handler]) -> Iterator[list[bool]]:
+    """While open, servers started through websockets' `serve` get the gate and routes; yields
+    a list that gains an entry per server so wrapped (empty: the check was not installed)."""
+    module = websockets.asyncio.server
+    original = module.serve
+    wrapped: list[bool] = []
+
+    def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
+        wrapped.append(True)
+        return original(route(handler, routes), *args, process_request=guard(gate, process_request, routes), **kwargs)
+
+    with _SERVE_LOCK:
+        module.serve = serve
+        try:
+            yield wrapped
+        finally:
+            module.serve = original
+
+
+def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,
+                  routes: Mapping[str, Handler]) -> T:
+    """`start()` (which must start a viser server and return it) with the gate and routes installed.
+
+    Raises RuntimeError (after `stop`) if the server did not start through the
+    wrapped call, so a session never serves without its token check.
+    """
+    with _guarded_serve(gate, routes) as wrapped:
+        server = start()
+    if not wrapped:
+        stop(server)
+        raise RuntimeError("this viser version starts its server in a way teleop cannot guard; "
+                           "the session token and the page input channel need viser 1.1")
+    return server

@@ -1,0 +1,125 @@
+"""What a page may say on the input channel, checked before anything acts on it.
+
+A page is code the server does not control (a stale tab, another script, a
+hostile one holding the token), so every message is parsed here, in the
+server's network thread, into one of a few small frozen types, or rejected
+with a one-line reason. Nothing downstream (the key state, the control loop)
+ever sees a message that is not one of these.
+
+Messages are JSON objects of at most MAX_BYTES, text frames, with exactly the
+fields of their type:
+  {"type": "hello", "client": 3, "agent": "Mozilla/5.0 ..."}   who this page is
+  {"type": "key", "key": "w", "down": true}                    a bound key, as KeyboardEvent.key
+  {"type": "release_all", "why": "blur"}                       the page lost focus or is going
+Keys are named as the browser names them (`KeyboardEvent.key`) and mapped to
+the keyboard device's bindings here, so the page and the server keyboard
+share one table (devices.keyboard.BINDINGS).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+from devices.keyboard import ALIASES, KEY_ACTION
+
+MAX_BYTES = 512  # the longest valid message is a hello with its agent string
+MAX_AGENT = 200
+MAX_CLIENT_ID = 2**31 - 1
+REASONS = ("blur", "hidden", "pagehide", "disconnect", "reset")
+# KeyboardEvent.key values of the named keys in the bindings; other bindings are single characters.
+BROWSER_NAMES: dict[str, str] = {" ": "space", "Enter": "enter", "Backspace": "backspace", "Tab": "tab"}
+
+
+class Rejected(ValueError):
+    """A message that is dropped; the text says why in one line."""
+
+
+@dataclass(frozen=True)
+class Hello:
+    client: int | None  # viser's client id of the page, for naming it on the panel
+    agent: str
+
+
+@dataclass(frozen=True)
+class Key:
+    name: str  # the binding's key name (devices.keyboard.KEY_ACTION), not the browser's
+    down: bool
+
+
+@dataclass(frozen=True)
+class ReleaseAll:
+    why: str
+
+
+InputMessage = Hello | Key | ReleaseAll
+FIELDS: dict[str, frozenset[str]] = {
+    "hello": frozenset({"type", "client", "agent"}),
+    "key": frozenset({"type", "key", "down"}),
+    "release_all": frozenset({"type", "why"}),
+}
+
+
+def binding_name(browser_key: str) -> str | None:
+    """KeyboardEvent.key -> the keyboard binding's key name ("w", "space", "="), None if unbound."""
+    name = BROWSER_NAMES.get(browser_key)
+    if name is None and len(browser_key) == 1:
+        name = browser_key.lower()
+    name = ALIASES.get(name, name) if name is not None else None
+    return name if name in KEY_ACTION else None
+
+
+def browser_keys() -> list[str]:
+    """Every KeyboardEvent.key the page should catch and send (both cases of letters)."""
+    named = {v: k for k, v in BROWSER_NAMES.items()}
+    keys: set[str] = set()
+    for name in KEY_ACTION:
+        key = named.get(name, name)
+        keys.update({key, key.upper()} if len(key) == 1 else {key})
+    keys.update(alias for alias, target in ALIASES.items() if target in KEY_ACTION)
+    return sorted(k for k in keys if binding_name(k) is not None)
+
+
+def _no_constant(word: str):
+    raise Rejected(f"{word} is not a number JSON allows")
+
+
+def parse(raw: str | bytes) -> InputMessage:
+    """One message from a page, or Rejected naming what is wrong with it."""
+    if not isinstance(raw, str):
+        raise Rejected("binary frame (messages are JSON text)")
+    if len(raw.encode("utf-8", "replace")) > MAX_BYTES:
+        raise Rejected(f"message longer than {MAX_BYTES} bytes")
+    try:
+        data = json.loads(raw, parse_constant=_no_constant)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise Rejected(f"not JSON ({exc.__class__.__name__})") from None
+    if not isinstance(data, dict):
+        raise Rejected("not a JSON object")
+    kind = data.get("type")
+    if not isinstance(kind, str) or kind not in FIELDS:
+        raise Rejected(f"unknown type {str(kind)[:20]!r}")
+    extra = set(data) - FIELDS[kind]
+    missing = FIELDS[kind] - set(data) - ({"client"} if kind == "hello" else set())
+    if extra or missing:
+        raise Rejected(f"{kind}: " + ", ".join([*(f"unknown field {f[:20]!r}" for f in sorted(extra)),
+                                                 *(f"missing {f!r}" for f in sorted(missing))]))
+    if kind == "key":
+        key, down = data["key"], data["down"]
+        if not isinstance(key, str) or not isinstance(down, bool):
+            raise Rejected("key: 'key' must be a string and 'down' true or false")
+        name = binding_name(key)
+        if name is None:
+            raise Rejected(f"key: {key[:20]!r} is not bound")
+        return Key(name, down)
+    if kind == "hello":
+        client, agent = data.get("client"), data["agent"]
+        if client is not None and (type(client) is not int or not 0 <= client <= MAX_CLIENT_ID):
+            raise Rejected("hello: 'client' must be a whole number from 0 or null")
+        if not isinstance(agent, str) or len(agent) > MAX_AGENT:
+            raise Rejected(f"hello: 'agent' must be a string of at most {MAX_AGENT} characters")
+        return Hello(client, agent)
+    why = data["why"]  # release_all
+    if not isinstance(why, str) or why not in REASONS:
+        raise Rejected(f"release_all: 'why' must be one of {', '.join(REASONS)}")
+    return ReleaseAll(why)

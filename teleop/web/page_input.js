@@ -1,0 +1,127 @@
+// Keys typed in the teleop page, sent to the server's input channel.
+//
+// viser runs this with `new Function(source)()` (RunJavascriptMessage), once per
+// connection of its own socket, so again after a reconnect; the server prepends
+// `const CONFIG = {path, keys, client}` (teleop/web/page_keyboard.py).
+// The first run installs the listeners; later runs only pass the new CONFIG on.
+//
+// Only bound keys are caught, in the capture phase on window, so viser's own
+// keyboard camera (w/a/s/d fly it) never sees them; keys with Ctrl/Alt/Meta and
+// keys typed into form fields are left alone. A held key is sent once (autorepeat
+// is ignored) and its release is sent under the name it was pressed with. When
+// the page loses focus or is hidden every held key is released (and the server
+// lets go by itself when this socket closes or stops answering its pings).
+(() => {
+  const api = window.__teleopInput;
+  if (api) {
+    api.configure(CONFIG);
+    return;
+  }
+  let config = CONFIG;
+  let keys = new Set(config.keys);
+  let socket = null;
+  let retry = null;
+  let closing = false;
+  const held = new Map(); // KeyboardEvent.code -> the key sent down
+
+  const send = (message) => {
+    if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
+  };
+  const hello = () => send({ type: "hello", client: config.client, agent: navigator.userAgent.slice(0, 200) });
+
+  const url = () => {
+    const scheme = window.location.protocol === "https:" ? "wss://" : "ws://";
+    const token = new URLSearchParams(window.location.search).get("token");
+    // The cookie set with the page carries the token too; the query is for browsers without cookies.
+    return scheme + window.location.host + config.path + (token ? "?token=" + encodeURIComponent(token) : "");
+  };
+
+  const connect = () => {
+    retry = null;
+    if (closing) return;
+    const ws = new WebSocket(url());
+    socket = ws;
+    ws.onopen = hello;
+    ws.onclose = () => {
+      if (socket !== ws) return;
+      socket = null;
+      held.clear(); // the server let go of this page's keys when the socket closed
+      if (!closing && retry === null) retry = setTimeout(connect, 1000);
+    };
+  };
+
+  const releaseAll = (why) => {
+    held.clear();
+    send({ type: "release_all", why });
+  };
+
+  const isFormField = (target) => {
+    if (!(target instanceof HTMLElement)) return false;
+    if (target.isContentEditable) return true;
+    const tag = target.tagName;
+    if (tag === "TEXTAREA" || tag === "SELECT") return true;
+    if (tag !== "INPUT") return false;
+    const kind = (target.getAttribute("type") || "text").toLowerCase();
+    return !["button", "checkbox", "radio", "range", "color", "submit", "reset"].includes(kind);
+  };
+  const bound = (event) => keys.has(event.key);
+
+  const onKeyDown = (event) => {
+    if (!bound(event) || isFormField(event.target)) return;
+    if (event.ctrlKey || event.altKey || event.metaKey) return; // Ctrl+W and friends belong to the browser
+    event.preventDefault(); // no scrolling (space), focus moves (tab) or button clicks (enter, space)
+    event.stopPropagation(); // no camera flight on w/a/s/d
+    const code = event.code || event.key;
+    if (event.repeat || held.has(code)) return;
+    held.set(code, event.key);
+    send({ type: "key", key: event.key, down: true });
+  };
+  const onKeyUp = (event) => {
+    const code = event.code || event.key;
+    const key = held.get(code);
+    if (key === undefined) {
+      if (bound(event) && !isFormField(event.target)) {
+        event.preventDefault();
+        event.stopPropagation();
+      }
+      return;
+    }
+    held.delete(code);
+    event.preventDefault();
+    event.stopPropagation();
+    send({ type: "key", key, down: false });
+  };
+
+  window.addEventListener("keydown", onKeyDown, true);
+  window.addEventListener("keyup", onKeyUp, true);
+  window.addEventListener("blur", () => releaseAll("blur"));
+  document.addEventListener("visibilitychange", () => {
+    if (document.visibilityState === "hidden") releaseAll("hidden");
+  });
+  window.addEventListener("pagehide", () => {
+    releaseAll("pagehide");
+    closing = true;
+    if (socket !== null) socket.close();
+  });
+  window.addEventListener("pageshow", (event) => {
+    if (!event.persisted) return; // back from the back-forward cache: talk again
+    closing = false;
+    if (socket === null && retry === null) connect();
+  });
+
+  window.__teleopInput = {
+    configure(next) {
+      config = next;
+      keys = new Set(config.keys);
+      if (socket === null && retry === null) connect();
+      else hello();
+    },
+    connected: () => socket !== null && socket.readyState === WebSocket.OPEN,
+    held: () => Array.from(held.values()),
+    sendRaw: (text) => {
+      // For tests and debugging: a message as given, valid or not (the server must cope).
+      if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(text);
+    },
+  };
+  connect();
+})();
