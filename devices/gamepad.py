@@ -18,7 +18,8 @@ LT/RT = L2/R2, Back = Share/Select, Start = Options):
     Back              discard the episode
 
 A radial deadzone keeps a resting stick still. A state older than STALE_S (the
-browser went away, the tab was hidden) counts as released: no runaway arm.
+page stopped sending) counts as released, and the web app releases the pad at
+once when the page's channel closes or stops answering: no runaway arm.
 """
 
 from __future__ import annotations
@@ -40,7 +41,9 @@ A, B, X, Y, LB, RB, LT, RT, BACK, START = range(10)
 N_AXES, N_BUTTONS = 4, 17  # the standard mapping's counts; extra entries are ignored
 DEADZONE = 0.12  # stick radius read as zero (fraction of full deflection)
 TRIGGER_DEADZONE = 0.05
-STALE_S = 0.5  # a state older than this counts as released
+# A state older than this counts as released. Generous: the browser's channel releases a page that
+# stops answering at once; this is for a page whose timers stall (a loaded machine, a hidden tab).
+STALE_S = 2.0
 PRESSED_AT = 0.5  # a button value at or above this is pressed
 
 MAPPING: tuple[tuple[str, str], ...] = (

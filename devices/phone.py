@@ -28,7 +28,7 @@ import numpy as np
 from devices.command import Command
 from devices.view import SessionView
 
-STALE_S = 0.5  # no pose for this long while the clutch is held: released (no runaway arm)
+STALE_S = 2.0  # no pose for this long while the clutch is held: released (the web app also releases a page that goes quiet)
 UPRIGHT = 0.7  # |top edge's vertical component| above which the back camera gives the heading
 
 

@@ -43,6 +43,7 @@ from urllib.parse import parse_qs, quote, urlsplit
 
 import websockets.asyncio.server
 from websockets.asyncio.server import ServerConnection
+from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from teleop.errors import UsageError
@@ -143,8 +144,16 @@ def _is_upgrade(request: Request) -> bool:
     return request.headers.get("Upgrade", "").lower() == "websocket"
 
 
-def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler]) -> ProcessRequest:
-    """viser's `process_request` behind the token check; our websocket paths checked for Origin too."""
+def html_response(body: bytes) -> Response:
+    """A 200 answer with an HTML page of our own (the phone page)."""
+    headers = Headers([("Content-Type", "text/html; charset=utf-8"), ("Content-Length", str(len(body)))])
+    return Response(http.HTTPStatus.OK, "OK", headers, body)
+
+
+def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler],
+          pages: Mapping[str, bytes] | None = None) -> ProcessRequest:
+    """viser's `process_request` behind the token check; our websocket paths checked for Origin too,
+    and our own pages (path -> HTML) answered before viser's static files."""
 
     async def process_request(connection: ServerConnection, request: Request) -> Response | None:
         if not gate.allows(request):
@@ -155,7 +164,10 @@ def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler
             if not same_origin(request):
                 return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")
             return None
-        response = inner(connection, request) if inner is not None else None
+        if not _is_upgrade(request) and pages and path in pages:
+            response = html_response(pages[path])
+        else:
+            response = inner(connection, request) if inner is not None else None
         if inspect.isawaitable(response):
             response = await response
         if response is not None and gate.token is not None:
@@ -182,7 +194,7 @@ _SERVE_LOCK = threading.Lock()  # one guarded start at a time: the wrapper is pr
 
 
 @contextmanager
-def _guarded_serve(gate: Gate, routes: Mapping[str, Handler]) -> Iterator[list[bool]]:
+def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None) -> Iterator[list[bool]]:
     """While open, servers started through websockets' `serve` get the gate and routes; yields
     a list that gains an entry per server so wrapped (empty: the check was not installed)."""
     module = websockets.asyncio.server
@@ -191,7 +203,8 @@ def _guarded_serve(gate: Gate, routes: Mapping[str, Handler]) -> Iterator[list[b
 
     def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
         wrapped.append(True)
-        return original(route(handler, routes), *args, process_request=guard(gate, process_request, routes), **kwargs)
+        return original(route(handler, routes), *args, process_request=guard(gate, process_request, routes, pages),
+                        **kwargs)
 
     with _SERVE_LOCK:
         module.serve = serve
@@ -202,13 +215,13 @@ def _guarded_serve(gate: Gate, routes: Mapping[str, Handler]) -> Iterator[list[b
 
 
 def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,
-                  routes: Mapping[str, Handler]) -> T:
+                  routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None) -> T:
     """`start()` (which must start a viser server and return it) with the gate and routes installed.
 
     Raises RuntimeError (after `stop`) if the server did not start through the
     wrapped call, so a session never serves without its token check.
     """
-    with _guarded_serve(gate, routes) as wrapped:
+    with _guarded_serve(gate, routes, pages) as wrapped:
         server = start()
     if not wrapped:
         stop(server)

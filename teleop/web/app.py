@@ -36,7 +36,8 @@ from teleop.web.drawing import SceneDrawer
 from teleop.web.input_channel import PATH as INPUT_PATH
 from teleop.web.input_channel import InputChannel
 from teleop.web.net import check_port_free, page_url
-from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys
+from teleop.web.page_devices import PageInputs
+from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
 from teleop.web.panel import Panel, PanelDevice
 from teleop.web.sim_thread import SimThread, Snapshot
 
@@ -44,6 +45,7 @@ if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads
     from teleop.takeover import Takeover
 
 STATUS_PERIOD_S = 0.2
+PHONE_PATH = "/phone"  # the phone page (teleop/web/phone.html), served beside viser's
 
 
 class WebApp:
@@ -80,6 +82,7 @@ class WebApp:
         self.url = page_url(host, port)
         self.gate = Gate(token, port)  # token None: open (loopback, or --no-token)
         self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
+        self.phone_url: str | None = None  # the phone page's address, when a phone device runs
 
         if session.recorder is not None:
             session.recorder.on_verified = self._on_verified
@@ -92,10 +95,17 @@ class WebApp:
                 keyboard = PageKeyboardDevice(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
                 keyboard.start()
                 self.devices.append(keyboard)
-            self.page_keys = self.input.listener = PageKeys(keyboard)
+            self.page_keys = PageKeys(keyboard)
+        # Gamepads, the phone page and WebHID SpaceMice: devices fed by pages over the same channel.
+        self.page_inputs = PageInputs(self.page_keys, self.devices)
+        if self.page_keys is not None or self.page_inputs.any_device:
+            self.input.listener = self.page_inputs
+        pages = {PHONE_PATH: PageInputs.phone_page()} if self.page_inputs.phone is not None else {}
+        if pages:
+            self.phone_url = url_with_token(self.url + PHONE_PATH, token)
         check_port_free(host, port)
         self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
-                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle})
+                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages)
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
@@ -167,10 +177,13 @@ class WebApp:
 
     # -- hooks from the threads ------------------------------------------
     def _client_connected(self, client: viser.ClientHandle) -> None:
-        if self.page_keys is not None:
-            # The page's key script, with this page's client id; viser has no public call for this.
-            script = RunJavascriptMessage(source=self.page_keys.script(client.client_id))
-            client._websock_connection.queue_message(script)  # noqa: SLF001
+        if self.input.listener is not None:
+            # The page's input script, with this page's client id; viser has no public call for this.
+            source = self.page_keys.script(client.client_id) if self.page_keys is not None else \
+                channel_script(client.client_id, keys=[])
+            if self.page_inputs.any_device:
+                source += self.page_inputs.script()
+            client._websock_connection.queue_message(RunJavascriptMessage(source=source))  # noqa: SLF001
         self._clients_changed()
 
     def _client_disconnected(self, client: viser.ClientHandle) -> None:
@@ -288,6 +301,7 @@ class WebApp:
             "input_dropped": self.input.dropped,
             "input": self.input.status(),
             "page_keyboard": self.page_keys.state() if self.page_keys is not None else None,
+            "phone_url": self.phone_url,
             "driver": self.takeover.driver if self.takeover is not None else "operator",
             "policy": self.takeover.status() if self.takeover is not None else None,
             "notes": self.notes(),

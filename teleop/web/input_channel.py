@@ -36,8 +36,8 @@ from teleop.web.input_messages import InputMessage, Rejected, parse
 
 PATH = "/teleop/input"
 MAX_FRAME = 64 * 1024  # bigger frames close the connection (websockets' limit; code 1009)
-RATE = 60.0  # messages per second, sustained, per connection
-BURST = 120.0
+RATE = 300.0  # messages per second, sustained, per connection: keys, a pad at 60 Hz and a SpaceMouse at 125 Hz
+BURST = 600.0
 MAX_CONNECTIONS = 32
 PING_S = 0.25  # websocket pings to each page this often...
 QUIET_S = 1.0  # ...and a pong later than this releases its keys

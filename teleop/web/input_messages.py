@@ -11,6 +11,13 @@ fields of their type:
   {"type": "hello", "client": 3, "agent": "Mozilla/5.0 ..."}   who this page is
   {"type": "key", "key": "w", "down": true}                    a bound key, as KeyboardEvent.key
   {"type": "release_all", "why": "blur"}                       the page lost focus or is going
+  {"type": "gamepad", "id": "Xbox ...", "axes": [..], "buttons": [..], "connected": true}
+                                                  a pad's state (standard mapping), <= 8 axes, <= 20 buttons
+  {"type": "phone", "quat": [w, x, y, z], "pos": [x, y, z] | null, "clutch": true}
+                                                  the phone page's pose (devices/phone.py's frames)
+  {"type": "phone_button", "action": "gripper"}   a phone page button: gripper or an episode event
+  {"type": "hid", "report_id": 1, "data": [..]}   one WebHID input report (<= 63 bytes after the id)
+  {"type": "hid_connect", "product": "SpaceMouse Compact"} / {"type": "hid_disconnect"}
 Keys are named as the browser names them (`KeyboardEvent.key`) and mapped to
 the keyboard device's bindings here, so the page and the server keyboard
 share one table (devices.keyboard.BINDINGS).
@@ -19,6 +26,7 @@ share one table (devices.keyboard.BINDINGS).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 
 from devices.keyboard import ALIASES, KEY_ACTION
@@ -52,12 +60,100 @@ class ReleaseAll:
     why: str
 
 
-InputMessage = Hello | Key | ReleaseAll
+@dataclass(frozen=True)
+class Gamepad:
+    pad_id: str
+    axes: tuple[float, ...]  # each in [-1, 1]
+    buttons: tuple[float, ...]  # each in [0, 1]
+    connected: bool
+
+
+@dataclass(frozen=True)
+class Phone:
+    quat: tuple[float, float, float, float]  # phone -> earth, wxyz, unit length within 1e-3
+    pos: tuple[float, float, float] | None  # m (WebXR), |each| <= 100
+    clutch: bool
+
+
+@dataclass(frozen=True)
+class PhoneButton:
+    action: str  # "gripper" or one of PHONE_EVENTS
+
+
+@dataclass(frozen=True)
+class Hid:
+    report_id: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class HidConnect:
+    product: str
+
+
+@dataclass(frozen=True)
+class HidDisconnect:
+    pass
+
+
+InputMessage = Hello | Key | ReleaseAll | Gamepad | Phone | PhoneButton | Hid | HidConnect | HidDisconnect
 FIELDS: dict[str, frozenset[str]] = {
     "hello": frozenset({"type", "client", "agent"}),
     "key": frozenset({"type", "key", "down"}),
     "release_all": frozenset({"type", "why"}),
+    "gamepad": frozenset({"type", "id", "axes", "buttons", "connected"}),
+    "phone": frozenset({"type", "quat", "pos", "clutch"}),
+    "phone_button": frozenset({"type", "action"}),
+    "hid": frozenset({"type", "report_id", "data"}),
+    "hid_connect": frozenset({"type", "product"}),
+    "hid_disconnect": frozenset({"type"}),
 }
+MAX_AXES, MAX_BUTTONS, MAX_HID_BYTES, MAX_PRODUCT = 8, 20, 63, 80
+PHONE_ACTIONS = ("gripper", "record", "start", "save", "discard", "reset")
+
+
+def _numbers(value, count: int | tuple[int, int], low: float, high: float, what: str) -> tuple[float, ...]:
+    """A list of finite JSON numbers (not booleans) of `count` entries (or a (min, max) range), each in [low, high]."""
+    least, most = (count, count) if isinstance(count, int) else count
+    if not isinstance(value, list) or not least <= len(value) <= most:
+        raise Rejected(f"{what}: expected a list of {least if least == most else f'{least} to {most}'} numbers")
+    if not all(type(v) in (int, float) and math.isfinite(v) and low <= v <= high for v in value):
+        raise Rejected(f"{what}: every entry must be a number from {low:g} to {high:g}")
+    return tuple(float(v) for v in value)
+
+
+def _device_message(kind: str, data: dict) -> InputMessage:
+    """The browser devices' messages (gamepad, phone, WebHID), checked field by field."""
+    if kind == "gamepad":
+        if not isinstance(data["id"], str) or len(data["id"]) > 120 or not isinstance(data["connected"], bool):
+            raise Rejected("gamepad: 'id' must be a string of at most 120 characters and 'connected' true or false")
+        axes = _numbers(data["axes"], (0, MAX_AXES), -1.0, 1.0, "gamepad axes")
+        buttons = _numbers(data["buttons"], (0, MAX_BUTTONS), 0.0, 1.0, "gamepad buttons")
+        return Gamepad(data["id"], axes, buttons, data["connected"])
+    if kind == "phone":
+        quat = _numbers(data["quat"], 4, -1.0, 1.0, "phone quat")
+        if abs(math.hypot(*quat) - 1.0) > 1e-3:
+            raise Rejected("phone quat: not a unit quaternion")
+        pos = None if data["pos"] is None else _numbers(data["pos"], 3, -100.0, 100.0, "phone pos")
+        if not isinstance(data["clutch"], bool):
+            raise Rejected("phone: 'clutch' must be true or false")
+        return Phone(quat, pos, data["clutch"])  # type: ignore[arg-type]
+    if kind == "phone_button":
+        if data["action"] not in PHONE_ACTIONS:
+            raise Rejected(f"phone_button: 'action' must be one of {', '.join(PHONE_ACTIONS)}")
+        return PhoneButton(data["action"])
+    if kind == "hid":
+        report_id, raw = data["report_id"], data["data"]
+        if type(report_id) is not int or not 0 <= report_id <= 255:
+            raise Rejected("hid: 'report_id' must be a whole number from 0 to 255")
+        if not isinstance(raw, list) or len(raw) > MAX_HID_BYTES or not all(type(b) is int and 0 <= b <= 255 for b in raw):
+            raise Rejected(f"hid: 'data' must be a list of at most {MAX_HID_BYTES} bytes (0-255)")
+        return Hid(report_id, bytes(raw))
+    if kind == "hid_connect":
+        if not isinstance(data["product"], str) or len(data["product"]) > MAX_PRODUCT:
+            raise Rejected(f"hid_connect: 'product' must be a string of at most {MAX_PRODUCT} characters")
+        return HidConnect(data["product"])
+    return HidDisconnect()
 
 
 def binding_name(browser_key: str) -> str | None:
@@ -104,6 +200,8 @@ def parse(raw: str | bytes) -> InputMessage:
     if extra or missing:
         raise Rejected(f"{kind}: " + ", ".join([*(f"unknown field {f[:20]!r}" for f in sorted(extra)),
                                                  *(f"missing {f!r}" for f in sorted(missing))]))
+    if kind in ("gamepad", "phone", "phone_button", "hid", "hid_connect", "hid_disconnect"):
+        return _device_message(kind, data)
     if kind == "key":
         key, down = data["key"], data["down"]
         if not isinstance(key, str) or not isinstance(down, bool):

@@ -78,6 +78,12 @@ def _source(conn: int) -> str:
     return f"page:{conn}"
 
 
+def channel_script(client: int, keys: list[str]) -> str:
+    """page_input.js for viser's client `client`, catching `keys` (none: the channel only, for other devices)."""
+    config = {"path": PATH, "keys": list(keys), "client": int(client)}
+    return f"const CONFIG = {json.dumps(config)};\n" + SCRIPT.read_text(encoding="utf-8")
+
+
 class PageKeys:
     """The input channel's listener: browsers' keys into `keyboard.keys`, one source per connection."""
 
@@ -141,8 +147,7 @@ class PageKeys:
 
     def script(self, client: int) -> str:
         """The page's script (page_input.js) for viser's client `client`, its settings prepended."""
-        config = {"path": PATH, "keys": browser_keys(), "client": int(client)}
-        return f"const CONFIG = {json.dumps(config)};\n" + SCRIPT.read_text(encoding="utf-8")
+        return channel_script(client, browser_keys())
 
     # -- what the panel and the status say ------------------------------------
     def state(self) -> dict:

@@ -118,6 +118,14 @@ class Panel(LoopThread):
                                              step=0.05, initial_value=float(np.clip(rot_speed, *ROT_SPEED_RANGE)))
         with gui.add_folder("Devices"):
             self.devices_md = gui.add_markdown(self._devices_text())
+            if app.page_inputs.webhid is not None:
+                # The page's script asks the browser for the device in this click (WebHID needs a user gesture).
+                gui.add_button("Connect SpaceMouse", hint="a SpaceMouse plugged into this computer (WebHID: Chrome, Edge)")
+            if app.phone_url is not None:
+                gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see README)")
+            if app.page_inputs.gamepad is not None:
+                gui.add_markdown("Gamepad: left stick x/y · RT/LT up/down · right stick yaw (LB roll/pitch, RB yaw/pitch) · "
+                                 "A gripper · B reset · Start record/stop · Back discard")
         self.notes_md = gui.add_markdown("")
         self._wire()
 
