@@ -14,6 +14,11 @@ Figures (`measure`):
                          episode and streaming to one browser; 1.0 is real time
   serve_headroom_x       control period / median compute time of one tick in that same run: how
                          many times faster than real time the loop could run
+  browser_key_latency_ms from a key pressed in headless Chromium (Playwright's keyboard.down) to the
+                         control tick that applies it (the page's input channel, the keyboard device),
+                         median; goal <= one control tick (33 ms at 30 Hz) + 10 ms
+  browser_key_to_drawn_ms  from the same press to the page receiving the first scene update that
+                         moves the arm (viser's worker handing it to the page), median
 
 The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
 Moving the arm without a person: the session also runs a script device that sweeps the target.
@@ -141,10 +146,122 @@ def browser_figures(quick: bool) -> dict[str, float]:
     return out
 
 
+# In viser's worker: the wall times (Date.now(), ms) of the scene updates that move a body after
+# `self.__since`; tests/browser.py's COUNT_FRAMES counts the same batches.
+FIRST_UPDATE = r"""
+(() => {
+  const Original = window.Worker;
+  window.Worker = function (scriptUrl, options) {
+    const patch = `(() => { self.__since = Infinity; self.__times = []; self.__last = 0;
+      const post = self.postMessage.bind(self);
+      self.postMessage = function (data, ...rest) {
+        if (data && data.type === 'message_batch' && Array.isArray(data.messages) && data.messages.some((m) =>
+            m && m.type === 'SceneNodeUpdateMessage' && typeof m.name === 'string' && m.name.startsWith('/bodies/'))) {
+          const now = Date.now(); self.__last = now;
+          if (now >= self.__since && self.__times.length < 200) self.__times.push(now);
+        }
+        return post(data, ...rest);
+      };
+    })();`;
+    const load = options && options.type === 'module'
+      ? `\nimport ${JSON.stringify(String(scriptUrl))};` : `\nimportScripts(${JSON.stringify(String(scriptUrl))});`;
+    return new Original(URL.createObjectURL(new Blob([patch + load], {type: 'text/javascript'})), options);
+  };
+  window.Worker.prototype = Original.prototype;
+})();
+"""
+
+
+def _worker_value(page, expression: str):
+    for worker in page.workers:
+        try:
+            value = worker.evaluate(expression)
+        except Exception:  # noqa: BLE001 - a worker that went away
+            continue
+        if value is not None:
+            return value
+    return None
+
+
+def key_latency(presses: int) -> dict[str, float]:
+    """A key held in headless Chromium's page: to the control tick that applies it, and to the page
+    receiving the moved arm (medians, ms). In process, so the tick's time is read where it happens."""
+    from playwright.sync_api import sync_playwright
+
+    from teleop.session import Session
+    from teleop.web.app import WebApp
+    from tests import browser as headless
+
+    session = Session("lift", "panda", seed=0, control_hz=30)
+    app = WebApp(session, [], [], port=headless.free_port(), camera=False, page_keyboard=True, log=lambda line: None)
+    keyboard = app.page_keys.keyboard
+    applied: list[float] = []
+    poll = keyboard.poll
+
+    def timed_poll(view, dt):
+        commands = poll(view, dt)
+        if any(c.translation.any() for c in commands):
+            applied.append(time.monotonic())
+        return commands
+
+    keyboard.poll = timed_poll  # the device the control loop polls: stamp the tick that first moves
+    to_tick: list[float] = []
+    to_drawn: list[float] = []
+    app.start()
+    try:
+        with sync_playwright() as p:
+            browser = headless.launch(p)
+            try:
+                # A small window: software WebGL (SwiftShader) draws each frame on the page's main
+                # thread, and a key is handled only between frames.
+                page = browser.new_page(viewport={"width": 640, "height": 480})
+                page.add_init_script(FIRST_UPDATE)
+                page.goto(app.url, timeout=60000)
+                page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
+                time.sleep(2.0)
+                for i in range(presses):
+                    key = "w" if i % 2 == 0 else "s"  # back and forth: the arm stays in its workspace
+                    deadline = time.monotonic() + 10
+                    while time.monotonic() < deadline:  # at rest: no scene update for 0.5 s
+                        last = _worker_value(page, "self.__last") or 0
+                        if time.time() * 1000 - last > 500:
+                            break
+                        time.sleep(0.1)
+                    since = time.time() * 1000
+                    _worker_value(page, f"(self.__since = {since}, self.__times = [], 1)")
+                    count = len(applied)
+                    t0 = time.monotonic()
+                    page.keyboard.down(key)
+                    while len(applied) == count and time.monotonic() - t0 < 5:
+                        time.sleep(0.0005)
+                    if len(applied) > count:
+                        to_tick.append((applied[count] - t0) * 1000)
+                        # the first update the page got from that tick on (wall clock, as the worker's)
+                        tick_wall = (time.time() - (time.monotonic() - applied[count])) * 1000
+                        while time.monotonic() - t0 < 5:
+                            first = next((t for t in (_worker_value(page, "self.__times") or []) if t >= tick_wall - 1), None)
+                            if first:
+                                to_drawn.append(first - since)
+                                break
+                            time.sleep(0.005)
+                    time.sleep(0.3)
+                    page.keyboard.up(key)
+            finally:
+                browser.close()
+    finally:
+        app.close()
+    return {
+        "browser_key_latency_ms": round(float(np.median(to_tick)), 1) if to_tick else None,
+        "browser_key_to_drawn_ms": round(float(np.median(to_drawn)), 1) if to_drawn else None,
+        "browser_key_presses": len(to_tick),
+    }
+
+
 def measure(quick: bool) -> dict[str, float]:
     figures = {"web_update_ms": round(update_cost_ms(100 if quick else 400), 3)}
     try:
         figures.update(browser_figures(quick))
+        figures.update(key_latency(6 if quick else 20))
     except (ImportError, FileNotFoundError) as exc:
         print(f"bench web: browser figures skipped ({exc})", file=sys.stderr)
     return figures
