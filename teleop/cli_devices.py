@@ -21,6 +21,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 def help_text() -> str:
     """Keyboard bindings and SpaceMouse mapping/setup, as printed under the device table."""
+    from devices.gamepad import MAPPING
     from devices.keyboard import bindings_table
     from devices.spacemouse import RIGHT_BUTTON_ACTIONS, UDEV_HOWTO
     from devices.spacemouse_protocol import STANCE_HELP
@@ -37,7 +38,13 @@ def help_text() -> str:
         "  Two SpaceMice drive arms 0 and 1 of a bimanual scene.\n"
         "  Linux access without root (then replug):\n"
         + "\n".join("    " + line for line in UDEV_HOWTO.splitlines())
-        + "\n  If spacenavd holds it: sudo systemctl stop spacenavd"
+        + "\n  If spacenavd holds it: sudo systemctl stop spacenavd\n\n"
+        "In the browser (teleop serve; work when the server runs on another machine):\n"
+        "  keys typed in the page: the keyboard bindings above\n"
+        "  gamepad (Gamepad API, standard mapping; PlayStation: A = cross, B = circle, LB/RB = L1/R1, Start = Options):\n"
+        + "\n".join(f"    {control:12} {action}" for control, action in MAPPING)
+        + "\n  phone: open the page's /phone address on the phone; hold the big button and move the phone\n"
+        "  webhid: 'Connect SpaceMouse' in the panel (Chrome, Edge) reads a SpaceMouse plugged into the browser's machine"
     )
 
 
