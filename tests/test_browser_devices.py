@@ -211,3 +211,54 @@ def test_phone_with_webxr_maps_forward_to_world_x_and_rejects_bad_poses():
     phone.press("record")
     commands = phone.poll(session, session.dt)
     assert commands[0].gripper == "toggle" and commands[1].events == ("record",)
+
+
+@pytest.mark.parametrize("message, why", [
+    ({"type": "gamepad", "id": "x", "axes": [0, 2.0], "buttons": [], "connected": True}, "from -1 to 1"),
+    ({"type": "gamepad", "id": "x", "axes": [0] * 9, "buttons": [], "connected": True}, "0 to 8"),
+    ({"type": "gamepad", "id": "x", "axes": [True], "buttons": [], "connected": True}, "from -1 to 1"),
+    ({"type": "gamepad", "id": "x", "axes": [], "buttons": [], "connected": "yes"}, "true or false"),
+    ({"type": "gamepad", "id": "x", "axes": [], "buttons": [], "connected": True, "extra": 1}, "unknown field"),
+    ({"type": "phone", "quat": [1, 1, 0, 0], "pos": None, "clutch": True}, "unit quaternion"),
+    ({"type": "phone", "quat": [1, 0, 0, 0], "pos": [0, 0, 500], "clutch": True}, "from -100 to 100"),
+    ({"type": "phone", "quat": [1, 0, 0], "pos": None, "clutch": True}, "4 numbers"),
+    ({"type": "phone_button", "action": "explode"}, "must be one of"),
+    ({"type": "hid", "report_id": 1, "data": [256]}, "0-255"),
+    ({"type": "hid", "report_id": 300, "data": []}, "0 to 255"),
+    ({"type": "hid", "report_id": 1, "data": [0] * 64}, "at most 63"),
+    ({"type": "hid_connect", "product": "x" * 81}, "at most 80"),
+])
+def test_device_messages_out_of_range_are_rejected_with_a_reason(message, why):
+    import json
+
+    from teleop.web.input_messages import Rejected, parse
+
+    with pytest.raises(Rejected, match=why):
+        parse(json.dumps(message))
+
+
+def test_a_page_that_goes_away_lets_go_of_its_pad_phone_and_spacemouse():
+    from devices.phone import PhoneDevice
+    from teleop.web.input_messages import Gamepad, Hid, HidConnect, Phone
+    from teleop.web.page_devices import PageInputs
+
+    pad, phone, mouse = GamepadDevice(), PhoneDevice(), WebHidSpaceMouse(deadzone=0.0)
+    mouse.start()
+    inputs = PageInputs(None, [pad, phone, mouse])
+    try:
+        inputs.opened(1, "127.0.0.1")
+        inputs.received(1, Gamepad("pad", (0.0, -1.0), (), True))
+        inputs.received(1, Phone((1.0, 0.0, 0.0, 0.0), None, True))
+        inputs.received(1, HidConnect("SpaceMouse Compact"))
+        report = encode_combined(0, -350, 0, 0, 0, 0)
+        inputs.received(1, Hid(report[0], report[1:]))
+        assert _wait(lambda: mouse.reports == 1)
+        assert pad.poll(None, DT) and "held" in phone.status() and mouse.poll(None, DT)
+        inputs.received(2, Gamepad("other", (), (), True))  # another page's pad now: page 1 no longer owns it
+        inputs.closed(1)
+        assert pad.poll(None, DT) == [] and "no phone" in phone.status()
+        assert _wait(lambda: not mouse._connected) and mouse.poll(None, DT) == []
+        inputs.received(3, Hid(1, b"\x00" * 12))  # reports before a hid_connect: not used
+        assert inputs.unused == 1
+    finally:
+        mouse.close()
