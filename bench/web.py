@@ -19,6 +19,9 @@ Figures (`measure`):
                          median; goal <= one control tick (33 ms at 30 Hz) + 10 ms
   browser_key_to_drawn_ms  from the same press to the page receiving the first scene update that
                          moves the arm (viser's worker handing it to the page), median
+  browser_key_latency_ms_3d_hidden  browser_key_latency_ms with the page's 3D view hidden: headless
+                         Chromium draws WebGL in software on the page's main thread, where keys wait
+                         for the frame in progress; this is the input path without that
 
 The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
 Moving the arm without a person: the session also runs a script device that sweeps the target.
@@ -183,9 +186,23 @@ def _worker_value(page, expression: str):
     return None
 
 
-def key_latency(presses: int) -> dict[str, float]:
+HIDE_3D = r"""
+document.addEventListener("DOMContentLoaded", () => {
+  const style = document.createElement("style");
+  style.textContent = "canvas { display: none !important; }";
+  document.head.appendChild(style);
+});
+"""
+
+
+def key_latency(presses: int, hide_3d: bool = False) -> dict[str, float]:
     """A key held in headless Chromium's page: to the control tick that applies it, and to the page
-    receiving the moved arm (medians, ms). In process, so the tick's time is read where it happens."""
+    receiving the moved arm (medians, ms). In process, so the tick's time is read where it happens.
+
+    hide_3d: the page's canvases hidden. Headless Chromium draws WebGL in software (SwiftShader) on
+    the page's main thread, and a key is handled only between two frames; hidden, the figure is the
+    input path alone (the page, its websocket, the channel, the keyboard device, the tick).
+    """
     from playwright.sync_api import sync_playwright
 
     from teleop.session import Session
@@ -212,10 +229,10 @@ def key_latency(presses: int) -> dict[str, float]:
         with sync_playwright() as p:
             browser = headless.launch(p)
             try:
-                # A small window: software WebGL (SwiftShader) draws each frame on the page's main
-                # thread, and a key is handled only between frames.
-                page = browser.new_page(viewport={"width": 640, "height": 480})
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
                 page.add_init_script(FIRST_UPDATE)
+                if hide_3d:
+                    page.add_init_script(HIDE_3D)
                 page.goto(app.url, timeout=60000)
                 page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
                 time.sleep(2.0)
@@ -250,6 +267,8 @@ def key_latency(presses: int) -> dict[str, float]:
                 browser.close()
     finally:
         app.close()
+    if hide_3d:
+        return {"browser_key_latency_ms_3d_hidden": round(float(np.median(to_tick)), 1) if to_tick else None}
     return {
         "browser_key_latency_ms": round(float(np.median(to_tick)), 1) if to_tick else None,
         "browser_key_to_drawn_ms": round(float(np.median(to_drawn)), 1) if to_drawn else None,
@@ -262,6 +281,7 @@ def measure(quick: bool) -> dict[str, float]:
     try:
         figures.update(browser_figures(quick))
         figures.update(key_latency(6 if quick else 20))
+        figures.update(key_latency(6 if quick else 20, hide_3d=True))
     except (ImportError, FileNotFoundError) as exc:
         print(f"bench web: browser figures skipped ({exc})", file=sys.stderr)
     return figures
