@@ -60,3 +60,16 @@ def _sigint_handler_kept():
     yield
     after = signal.getsignal(signal.SIGINT)
     assert after == before, f"SIGINT handler changed from {before!r} to {after!r}"
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless system Chromium (Playwright), one per test module."""
+    from playwright import sync_api as playwright_api
+
+    from tests import browser as headless
+
+    with playwright_api.sync_playwright() as p:
+        b = headless.launch(p)
+        yield b
+        b.close()

@@ -14,7 +14,6 @@ import urllib.error
 import urllib.request
 
 import numpy as np
-import playwright.sync_api as playwright_api
 import pytest
 import viser
 from websockets.asyncio.client import connect
@@ -148,14 +147,6 @@ def test_the_websocket_without_the_token_is_refused_and_with_it_accepted(server,
     assert headless.run_async(_ws_first_message(ws_url + "/?token=" + token))  # viser's first message arrives
     cookie = {"additional_headers": {"Cookie": f"teleop_token_{server.port}={token}"}}
     assert headless.run_async(_ws_first_message(ws_url, **cookie))
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright_api.sync_playwright() as p:
-        b = headless.launch(p)
-        yield b
-        b.close()
 
 
 def test_a_browser_without_the_token_sees_and_drives_nothing(server, browser):

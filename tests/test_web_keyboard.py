@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import playwright.sync_api as playwright_api
 import pytest
 from websockets.asyncio.client import connect
 
@@ -39,14 +38,6 @@ def server(record_dir, tmp_path_factory):
                                  tmp_path_factory.mktemp("serve"), env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
     yield proc
     proc.stop()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright_api.sync_playwright() as p:
-        b = headless.launch(p)
-        yield b
-        b.close()
 
 
 def open_keyboard_page(browser, server):

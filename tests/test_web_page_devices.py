@@ -9,7 +9,6 @@ import time
 
 import numpy as np
 import pytest
-from playwright import sync_api as playwright_api
 
 import tests.browser as headless
 from devices.spacemouse_protocol import encode_buttons, encode_combined
@@ -45,14 +44,6 @@ WEBHID = r"""
   Object.defineProperty(navigator, "hid", {value: hid});
 })();
 """
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright_api.sync_playwright() as p:
-        b = headless.launch(p)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

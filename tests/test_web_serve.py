@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
 
 from tests import browser as headless  # noqa: E402
 
@@ -36,14 +35,6 @@ def server(record_dir, tmp_path_factory):
     proc = headless.ServeProcess(["--record", str(record_dir), "--device", "gizmo"], tmp_path_factory.mktemp("serve"))
     yield proc
     proc.stop()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright_api.sync_playwright() as p:
-        b = headless.launch(p)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")
