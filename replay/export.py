@@ -31,6 +31,7 @@ from replay.errors import TeleopError, first_line
 from replay.export_frames import (
     ACTION_MODES, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, robot_layout,
 )
+from replay.export_stats import image_stats
 from replay.export_stream import EpisodeEnd, FrameStream
 from replay.render import RenderError, warm_up
 
@@ -440,7 +441,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     if why and opts.video and cameras:  # once the export goes ahead: an error stays the one line
         log(f"video: {decoder} decoder ({why})")  # slower reads in training, nothing wrong
     try:
-        _write(ds, chosen, first, opts, cameras, stream, summary)
+        with image_stats():  # LeRobot's per-frame image statistics, from value counts (replay/export_stats.py)
+            _write(ds, chosen, first, opts, cameras, stream, summary)
     except KeyboardInterrupt:
         summary.interrupted = True
     finally:

@@ -106,16 +106,16 @@ def feature_key(camera: str) -> str:
 
 def features(
     arms: list[ArmLayout], action: str, cameras: list[str], size: tuple[int, int], video: bool,
-    channel_first: bool | None = None,
+    channel_first: bool = False,
 ) -> dict:
     """The LeRobot feature spec (dtype, shape, names) for these arms, action mode and cameras.
 
-    Video cameras are declared channel-first, (3, H, W) named channels/height/width
-    (`channel_first` None: for video only). LeRobot takes either order (add_frame's
-    check, its streaming encoder, the policies' feature shapes) and decodes both to
-    the same (3, H, W) tensors, but its streaming encoder computes the per-frame image
-    statistics ~5x faster from channel-first frames: its per-channel reductions then
-    run over contiguous memory. That is more than half of an export's CPU time.
+    Cameras are declared (H, W, 3) named height/width/channels, as LeRobot's own
+    recorder declares them; `channel_first` asks for (3, H, W) instead, which
+    exports made in November 2026 declared (appending to one keeps its layout).
+    LeRobot decodes both to the same (3, H, W) tensors. Channel-last is also the
+    cheaper one to export: the renderer's rows go to LeRobot's encoder, its PIL
+    conversion and its statistics without a transposed copy on the way.
     """
     if action not in ACTION_MODES:
         raise ValueError(f"unknown action mode {action!r} (modes: {', '.join(ACTION_MODES)})")
@@ -133,8 +133,6 @@ def features(
         "action": {"dtype": "float32", "shape": (len(act),), "names": act},
     }
     width, height = size
-    if channel_first is None:
-        channel_first = video
     for cam in cameras:
         spec[feature_key(cam)] = {
             "dtype": "video" if video else "image",

@@ -9,8 +9,12 @@ encoder threads instead of taking turns with them: on a 2-core machine the
 export is then bounded by the CPU time it needs, not by one thread's latency.
 Frames come out in recorded order, at most `ahead` frames ahead of the consumer.
 
-An OpenGL context belongs to the thread that makes it current, so the renderer
-is made, used and freed in the stream's thread.
+With two or more cameras the cameras are split between the stream's thread and a
+render worker thread with a GL context of its own, each replaying the episode
+itself: rendering (~3.5 ms of MuJoCo and Mesa a camera at 224x224 on a CPU) was
+the export's bottleneck, the frame queue ran empty, and two cameras in one
+thread took turns. An OpenGL context belongs to the thread that makes it
+current, so each renderer is made, used and freed in its own thread.
 """
 
 from __future__ import annotations
@@ -49,6 +53,84 @@ class _Job:
 
 
 _DONE = object()
+WORKER_AHEAD = 16  # frames a render worker may run ahead of the stream's thread
+
+
+class _RenderWorker:
+    """Renders some cameras of each episode in a thread of its own, in step with the stream.
+
+    `episode(ep, model, channel_first)` starts one episode; `next()` returns each state's
+    images (in `cameras` order) and raises what the thread raised. The model is shared
+    read-only; the worker replays into its own MjData.
+    """
+
+    def __init__(self, model: mujoco.MjModel, size: tuple[int, int], cameras: list[str], stop: threading.Event):
+        self.cameras = cameras
+        self._stop = stop
+        self._jobs: queue.Queue = queue.Queue()
+        self._out: queue.Queue = queue.Queue(maxsize=WORKER_AHEAD)
+        self._ready = threading.Event()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(model, size), name="export-render", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+
+    def episode(self, ep: Episode, model: mujoco.MjModel, channel_first: list[bool]) -> None:
+        self._jobs.put((ep, model, channel_first))
+
+    def next(self) -> list:
+        while True:
+            try:
+                item = self._out.get(timeout=0.1)
+            except queue.Empty:
+                if self._stop.is_set():
+                    raise _Stopped
+                continue
+            if isinstance(item, BaseException):
+                raise item
+            return item
+
+    def close(self) -> None:
+        self._jobs.put(None)
+        self._thread.join()
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._out.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _run(self, model: mujoco.MjModel, size: tuple[int, int]) -> None:
+        try:
+            renderer = FastRenderer(model, *size, self.cameras)
+        except BaseException as exc:  # noqa: BLE001 - handed to the stream's constructor
+            self.error = exc
+            self._ready.set()
+            return
+        self._ready.set()
+        try:
+            current = model
+            while (job := self._jobs.get()) is not None:
+                ep, episode_model, channel_first = job
+                try:
+                    if episode_model is not current:
+                        renderer.load(episode_model)
+                        current = episode_model
+                    for _, data in replay_states(ep, episode_model):
+                        images = [renderer.render(data, c, channel_first[c]) for c in range(len(self.cameras))]
+                        if not self._put(images):
+                            break
+                except BaseException as exc:  # noqa: BLE001 - raised again in the stream's thread
+                    self._put(exc)
+        finally:
+            renderer.close()
+
+
+class _Stopped(Exception):
+    """The consumer went away while the stream's thread waited on a render worker."""
 
 
 class FrameStream:
@@ -124,33 +206,48 @@ class FrameStream:
 
     def _run(self, model: mujoco.MjModel, size: tuple[int, int], cameras: list[str]) -> None:
         renderer = None
+        worker = None
+        mine = cameras[: (len(cameras) + 1) // 2] if len(cameras) > 1 else cameras  # the rest go to the worker
         try:
             if cameras:
-                renderer = FastRenderer(model, *size, cameras)
+                renderer = FastRenderer(model, *size, mine)
                 self.backend = renderer.backend
+            if len(cameras) > 1:
+                worker = _RenderWorker(model, size, cameras[len(mine):], self._stop)
+                if worker.error is not None:
+                    error, worker = worker.error, None
+                    raise error
         except BaseException as exc:  # noqa: BLE001 - handed to the constructor's caller
             self._error = exc
         finally:
             self._ready.set()
-        if self._error is not None:
-            return
         try:
+            if self._error is not None:
+                return
             self._started.wait()
             if self._job is not None and not self._stop.is_set():
-                self._produce(self._job, renderer)
+                self._produce(self._job, renderer, worker, len(mine))
+        except _Stopped:
+            pass
         except BaseException as exc:  # noqa: BLE001 - raised again in the consumer's thread
             self._put(exc)
         finally:
+            self._stop.set()  # a worker waiting to hand over images stops too
+            if worker is not None:
+                worker.close()
             if renderer is not None:
                 renderer.close()
 
-    def _produce(self, job: _Job, renderer: FastRenderer | None) -> None:
+    def _produce(self, job: _Job, renderer: FastRenderer | None, worker: _RenderWorker | None, own: int) -> None:
+        """Replay, features and the first `own` cameras here; the other cameras from the worker, frame by frame."""
         for i, load in enumerate(job.episodes):
             job.episodes[i] = None  # let each episode's arrays go once replayed
             ep = load()
             model = ep.build_model()
             if renderer is not None and i > 0:
                 renderer.load(model)  # seeds move objects: each episode has its own model
+            if worker is not None:
+                worker.episode(ep, model, job.channel_first[own:])
             build = FrameBuilder(robot_layout(ep.meta, model), job.action)
             task = job.task(ep)
             driven = intervention_values(ep.control, ep.meta.source, ep.steps) if job.intervention else None
@@ -159,8 +256,11 @@ class FrameStream:
                 if driven is not None:
                     frame[INTERVENTION] = driven[k]
                 if renderer is not None:
-                    for c, key in enumerate(job.keys):
-                        frame[key] = renderer.render(data, c, job.channel_first[c])
+                    for c in range(own):
+                        frame[job.keys[c]] = renderer.render(data, c, job.channel_first[c])
+                if worker is not None:
+                    for c, image in enumerate(worker.next(), start=own):
+                        frame[job.keys[c]] = image
                 frame["task"] = task
                 if not self._put(frame):
                     return

@@ -94,9 +94,9 @@ def test_export_loads_offline_with_recorded_values(recorded, exported):
     assert feats["action"]["names"] == [*joints, "gripper"]
     assert feats["observation.ee_pose"]["names"] == ["x", "y", "z", "qw", "qx", "qy", "qz"]
     assert feats["observation.images.front"]["dtype"] == "video"
-    # Declared channel-first (LeRobot takes either order; its per-frame stats run ~5x faster so).
-    assert tuple(feats["observation.images.wrist"]["shape"]) == (3, 64, 64)
-    assert feats["observation.images.wrist"]["names"] == ["channels", "height", "width"]
+    # Declared channel-last, as LeRobot's recorder declares cameras.
+    assert tuple(feats["observation.images.wrist"]["shape"]) == (64, 64, 3)
+    assert feats["observation.images.wrist"]["names"] == ["height", "width", "channels"]
 
     # Episode boundaries, frame order and task text.
     meta_eps = ds.meta.episodes
@@ -205,28 +205,28 @@ def test_only_success_and_append(recorded, tmp_path):
     assert _open(out, "test/append").num_episodes == 3
 
 
-def test_append_to_a_channel_last_dataset_keeps_its_layout(recorded, tmp_path):
-    """Exports before 2026-11 declared video cameras (H, W, 3): appending keeps that layout."""
-    out = tmp_path / "hwc"
-    opts = dict(out=out, repo_id="test/hwc", cameras=["front"], image_size=(32, 24), progress=False)
+def test_append_to_a_channel_first_dataset_keeps_its_layout(recorded, tmp_path):
+    """Exports of November 2026 declared video cameras (3, H, W): appending keeps that layout."""
+    out = tmp_path / "chw"
+    opts = dict(out=out, repo_id="test/chw", cameras=["front"], image_size=(32, 24), progress=False)
     export_dataset(recorded["files"][:1], ExportOptions(**opts))
     info_path = out / "meta" / "info.json"
     info = json.loads(info_path.read_text())
     feature = info["features"]["observation.images.front"]
-    assert feature["shape"] == [3, 24, 32]
-    feature["shape"], feature["names"] = [24, 32, 3], ["height", "width", "channels"]  # as older exports wrote it
+    assert feature["shape"] == [24, 32, 3]
+    feature["shape"], feature["names"] = [3, 24, 32], ["channels", "height", "width"]  # as those exports wrote it
     info_path.write_text(json.dumps(info, indent=4))
 
     export_dataset(recorded["files"][1:2], ExportOptions(**opts, append=True))
-    ds = _open(out, "test/hwc")
+    ds = _open(out, "test/chw")
     assert ds.num_episodes == 2
-    assert list(ds.meta.features["observation.images.front"]["shape"]) == [24, 32, 3]
+    assert list(ds.meta.features["observation.images.front"]["shape"]) == [3, 24, 32]
     last = ds[ds.num_frames - 1]["observation.images.front"]
     assert tuple(last.shape) == (3, 24, 32) and last.std() > 0.05
 
 
 def test_image_stats_are_per_channel_and_match_the_frames(exported):
-    """LeRobot's per-frame image statistics (what normalization uses), from channel-first frames."""
+    """LeRobot's per-frame image statistics (what normalization uses), counted per channel (replay/export_stats.py)."""
     ds = _open(exported["out"])
     for key in ("observation.images.front", "observation.images.wrist"):
         stats = ds.meta.stats[key]

@@ -85,3 +85,28 @@ def test_camera_feature_keys_are_valid_names():
     assert feature_key("front") == "observation.images.front"
     assert feature_key("left/wrist") == "observation.images.left_wrist"
     assert feature_key("right/wrist cam") == "observation.images.right_wrist_cam"
+
+
+def test_the_export_stream_renders_cameras_in_two_threads_as_one_renderer_does(episode):
+    """The stream splits the cameras between its thread and a render worker (a GL context each): the frames
+    are the ones a single renderer draws, in order, for every camera."""
+    from replay.export_stream import EpisodeEnd, FrameStream
+
+    model = episode.build_model()
+    cameras = ["front", "overhead", "wrist"]
+    keys = [feature_key(c) for c in cameras]
+    stream = FrameStream(model, (48, 40), cameras)
+    try:
+        stream.start([lambda: episode, lambda: episode], "joint", lambda ep: "lift", keys, [False, True, False])
+        items = list(stream)
+    finally:
+        stream.close()
+    frames = [f for f in items if not isinstance(f, EpisodeEnd)]
+    assert [e.steps for e in items if isinstance(e, EpisodeEnd)] == [episode.steps] * 2
+    assert len(frames) == 2 * episode.steps
+    with FastRenderer(model, 48, 40, cameras) as renderer:
+        for k, data in replay_states(episode, model):
+            for c, key in enumerate(keys):
+                expected = renderer.render(data, c, channel_first=(c == 1))
+                for frame in (frames[k], frames[episode.steps + k]):
+                    np.testing.assert_array_equal(frame[key], expected, err_msg=f"step {k} {key}")
