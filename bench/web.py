@@ -21,7 +21,9 @@ Figures (`measure`):
                          moves the arm (viser's worker handing it to the page), median
   browser_key_latency_ms_3d_hidden  browser_key_latency_ms with the page's 3D view hidden: headless
                          Chromium draws WebGL in software on the page's main thread, where keys wait
-                         for the frame in progress; this is the input path without that
+                         for the frame in progress; this is the input path without that. (With the
+                         view shown the page gets teleop's software-WebGL view, as any browser without
+                         a GPU does: teleop/web/view_quality.py)
 
 The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
 Moving the arm without a person: the session also runs a script device that sweeps the target.

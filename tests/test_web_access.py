@@ -22,7 +22,9 @@ from websockets.http11 import Request
 from websockets.datastructures import Headers
 
 from teleop.errors import UsageError
-from teleop.web.access import TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token
+from teleop.web.access import (
+    TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token, with_head_script,
+)
 from tests import browser as headless
 from tests.conftest import assert_one_line_error, run_cli
 
@@ -209,3 +211,25 @@ def test_no_token_opens_another_host_with_a_warning_and_a_given_token_guards_loo
             assert headless.run_async(_ws_first_message(proc.url.replace("http://", "ws://")))
     finally:
         proc.stop()
+
+
+def test_the_head_script_goes_first_in_viser_s_page_in_its_encoding():
+    """viser answers its page gzipped or not; the script lands right after <head>, the length follows."""
+    import gzip
+
+    from websockets.http11 import Response
+
+    page = b"<!doctype html><html><head><title>Viser</title></head><body></body></html>"
+    script = b"<script>window.x = 1;</script>"
+    cache: dict = {}
+    for zipped in (False, True):
+        body = gzip.compress(page) if zipped else page
+        headers = Headers([("Content-Type", "text/html; charset=utf-8"), ("Content-Length", str(len(body))),
+                           ("Content-Encoding", "gzip" if zipped else "identity")])
+        out = with_head_script(Response(200, "OK", headers, body), script, cache)
+        html = gzip.decompress(out.body) if zipped else out.body
+        assert html == page.replace(b"<head>", b"<head>" + script)
+        assert out.headers.get_all("Content-Length") == [str(len(out.body))]
+        assert out.headers["Content-Encoding"] == ("gzip" if zipped else "identity")
+    js = Response(200, "OK", Headers([("Content-Type", "application/javascript")]), b"<head>")
+    assert with_head_script(js, script, cache).body == b"<head>"  # only the HTML page

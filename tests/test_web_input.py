@@ -15,7 +15,9 @@ from websockets.asyncio.server import serve
 from devices.keyboard import KEY_ACTION, KeyState
 from teleop.web import input_channel
 from teleop.web.input_channel import BURST, MAX_FRAME, PATH, QUIET_S, InputChannel
-from teleop.web.input_messages import MAX_BYTES, Hello, Key, Rejected, ReleaseAll, binding_name, browser_keys, parse
+from teleop.web.input_messages import (
+    MAX_BYTES, Hello, Key, Rejected, ReleaseAll, View, binding_name, browser_keys, parse,
+)
 from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys
 
 
@@ -26,6 +28,8 @@ def test_valid_messages_parse_into_their_types():
     assert parse('{"type": "hello", "client": 3, "agent": "Mozilla/5.0"}') == Hello(3, "Mozilla/5.0")
     assert parse('{"type": "hello", "agent": ""}') == Hello(None, "")
     assert parse('{"type": "release_all", "why": "blur"}') == ReleaseAll("blur")
+    assert parse('{"type": "view", "client": 2, "software_gl": true}') == View(2, True)
+    assert parse('{"type": "view", "software_gl": false}') == View(None, False)
 
 
 MALFORMED = [
@@ -44,6 +48,9 @@ MALFORMED = [
     '{"type": "hello", "client": 99999999999999999999, "agent": ""}',
     '{"type": "hello", "agent": "' + "x" * 300 + '"}',
     '{"type": "release_all", "why": "because"}',
+    '{"type": "view", "client": 2, "software_gl": "yes"}',
+    '{"type": "view", "client": 2}',
+    '{"type": "view", "client": -2, "software_gl": true}',
     '{"type": "fly"}',
     '{"type": null}',
     '{"type": "ping"}',

@@ -259,3 +259,48 @@ def test_every_browser_drives_and_the_panel_names_the_one_driving(page, server, 
     finally:
         second.context.close()
     server.wait_for(lambda s: s["page_keyboard"]["browsers"] == 1, what="the second page gone")
+
+
+VIEW_SIZE = """(() => {  // the 3D view's canvas (the one drawing the most pixels; an overlay has none): drawn and CSS pixels
+  const c = [...document.querySelectorAll("canvas")].sort((a, b) => b.width * b.height - a.width * a.height)[0];
+  return [c.width, c.height, c.clientWidth, c.clientHeight];
+})()"""
+GPU_RENDERER = """
+(() => {  // this browser says its WebGL runs on a GPU, whatever draws it
+  for (const Context of [WebGLRenderingContext, WebGL2RenderingContext]) {
+    const original = Context.prototype.getParameter;
+    Context.prototype.getParameter = function (name) {
+      if (name === 0x9246 || name === this.RENDERER) return "ANGLE (NVIDIA, NVIDIA GeForce RTX 4090 Direct3D11)";
+      return original.call(this, name);
+    };
+  }
+})();
+"""
+
+
+def test_a_browser_drawing_in_software_gets_the_cheap_view_and_others_keep_viser_s(page, server, browser):
+    """Headless Chromium draws WebGL with SwiftShader: the page draws at half resolution and gets no shadows or
+    environment map (teleop/web/view_quality.py); a page that reports a GPU renderer keeps viser's look."""
+    status = server.wait_for(lambda s: s["software_views"] >= 1, what="the page to report software WebGL")
+    assert status["software_views"] == 1 and status["clients"] == 1
+    page.get_by_text("1 drawing without a GPU", exact=False).first.wait_for(state="attached", timeout=15000)
+    # viser was asked, before it started, for half the display's resolution (its fixedDpr setting)...
+    assert page.evaluate("new URLSearchParams(location.search).get('fixedDpr')") == "0.5"
+    size = page.evaluate(VIEW_SIZE)
+    assert size[0] == round(size[2] * 0.5) and size[1] == round(size[3] * 0.5) and size[2] > 100  # ...and draws at it
+
+    context = browser.new_context(viewport={"width": PAGE_SIZE[0], "height": PAGE_SIZE[1]})
+    context.add_init_script(GPU_RENDERER)
+    gpu = context.new_page()
+    try:
+        gpu.goto(server.url, timeout=60000)
+        gpu.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
+        status = server.wait_for(lambda s: s["clients"] == 2 and s["input"]["accepted"] > 0, what="a second browser")
+        time.sleep(1.0)  # its view message has come by now
+        assert server.status()["software_views"] == 1
+        assert gpu.evaluate("new URLSearchParams(location.search).get('fixedDpr')") is None  # full resolution
+        size = gpu.evaluate(VIEW_SIZE)
+        assert size[0] == size[2] and size[2] > 100
+    finally:
+        context.close()
+    server.wait_for(lambda s: s["clients"] == 1, what="the second page gone")

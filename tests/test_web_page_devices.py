@@ -178,3 +178,58 @@ def test_the_phone_page_moves_the_target_only_while_the_clutch_is_held(browser, 
         server.wait_for(lambda s: s["gripper_open"] == [not was], what="the phone's gripper button")
     finally:
         page.close()
+
+
+FAKE_XR = r"""
+(() => {  // WebXR as a phone's AR browser has it: the viewer's pose each frame, from window.__xrPose
+  window.__xrPose = {p: [0.0, 1.4, 0.0], q: [0.0, 0.0, 0.0, 1.0]};
+  const session = new EventTarget();
+  session.requestReferenceSpace = async () => ({});
+  session.requestAnimationFrame = (callback) => setTimeout(() => callback(performance.now(), {
+    getViewerPose: () => {
+      const [x, y, z] = window.__xrPose.p, [qx, qy, qz, qw] = window.__xrPose.q;
+      return {transform: {position: {x, y, z}, orientation: {x: qx, y: qy, z: qz, w: qw}}};
+    },
+  }), 16);
+  const xr = {isSessionSupported: async (mode) => mode === "immersive-ar", requestSession: async () => session};
+  Object.defineProperty(navigator, "xr", {value: xr});
+})();
+"""
+
+
+def test_the_phone_page_uses_webxr_position_where_the_browser_has_it(browser, server):
+    """With WebXR the phone's motion (not only its turn) moves the target, metre for metre, clutch held only."""
+    page = browser.new_page(viewport={"width": 400, "height": 800}, has_touch=False)
+    page.add_init_script(FAKE_XR)
+    page.goto(server.url + "/phone", timeout=60000)
+    try:
+        page.locator("#xr").wait_for(state="visible", timeout=30000)  # offered only where AR is supported
+        page.locator("#xr").click()
+        server.wait_for(lambda s: "phone (WebXR)" in s["devices"]["phone"], what="the phone on WebXR")
+        start = _settled(server)
+        page.evaluate("window.__xrPose.p = [0.0, 1.5, -0.2]")  # moved with the clutch up: nothing
+        time.sleep(0.5)
+        np.testing.assert_allclose(_target(server), start, atol=1e-6)
+
+        box = page.locator("#clutch").bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        time.sleep(0.3)
+        for k in range(1, 11):  # 5 cm forward (XR's -z) and 3 cm up (XR's +y), in steps
+            page.evaluate(f"window.__xrPose.p = [0.0, {1.5 + 0.003 * k}, {-0.2 - 0.005 * k}]")
+            time.sleep(0.05)
+        def shift(status) -> tuple[float, float]:  # (horizontal, vertical) motion of the target since the start
+            delta = np.array(status["target_pos"][0]) - start
+            return float(np.hypot(delta[0], delta[1])), float(delta[2])
+
+        # the whole motion, forward turned to the robot's frame, metre for metre: 5 cm along, 3 cm up
+        server.wait_for(lambda s: np.allclose(shift(s), (0.05, 0.03), atol=5e-4),
+                        what="the held clutch to move the target 5 cm along and 3 cm up")
+        page.mouse.up()
+        time.sleep(0.3)
+        after = _settled(server)
+        page.evaluate("window.__xrPose.p = [0.3, 1.2, 0.4]")  # clutch up again: nothing
+        time.sleep(0.5)
+        np.testing.assert_allclose(_target(server), after, atol=1e-6)
+    finally:
+        page.close()

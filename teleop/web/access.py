@@ -28,6 +28,7 @@ serving without the check.
 
 from __future__ import annotations
 
+import gzip
 import hmac
 import http
 import inspect
@@ -150,10 +151,35 @@ def html_response(body: bytes) -> Response:
     return Response(http.HTTPStatus.OK, "OK", headers, body)
 
 
+INDEX_PATHS = ("/", "/index.html")
+
+
+def with_head_script(response: Response, script: bytes, cache: dict) -> Response:
+    """viser's page with `script` first in its <head> (before viser's own code runs), same encoding."""
+    if "text/html" not in response.headers.get("Content-Type", ""):
+        return response
+    key = bytes(response.body)
+    if key not in cache:
+        zipped = response.headers.get("Content-Encoding", "") == "gzip"
+        html = gzip.decompress(key) if zipped else key
+        head = html.find(b"<head>")
+        if head < 0:
+            cache[key] = key
+        else:
+            html = html[: head + 6] + script + html[head + 6:]
+            cache[key] = gzip.compress(html) if zipped else html
+    body = cache[key]
+    headers = Headers([(k, v) for k, v in response.headers.raw_items() if k.lower() != "content-length"])
+    headers["Content-Length"] = str(len(body))  # websockets' Headers add a value on assignment
+    return Response(response.status_code, response.reason_phrase, headers, body)
+
+
 def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler],
-          pages: Mapping[str, bytes] | None = None) -> ProcessRequest:
+          pages: Mapping[str, bytes] | None = None, head: bytes | None = None) -> ProcessRequest:
     """viser's `process_request` behind the token check; our websocket paths checked for Origin too,
-    and our own pages (path -> HTML) answered before viser's static files."""
+    our own pages (path -> HTML) answered before viser's static files, and `head` (a <script>)
+    put first in viser's page."""
+    edited: dict[bytes, bytes] = {}
 
     async def process_request(connection: ServerConnection, request: Request) -> Response | None:
         if not gate.allows(request):
@@ -170,6 +196,8 @@ def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler
             response = inner(connection, request) if inner is not None else None
         if inspect.isawaitable(response):
             response = await response
+        if head and response is not None and response.status_code == http.HTTPStatus.OK and path in INDEX_PATHS:
+            response = with_head_script(response, head, edited)
         if response is not None and gate.token is not None:
             response.headers["Referrer-Policy"] = "no-referrer"  # the token never leaves in a Referer
             response.headers["Cache-Control"] = "no-store"
@@ -194,7 +222,8 @@ _SERVE_LOCK = threading.Lock()  # one guarded start at a time: the wrapper is pr
 
 
 @contextmanager
-def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None) -> Iterator[list[bool]]:
+def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None,
+                   head: bytes | None = None) -> Iterator[list[bool]]:
     """While open, servers started through websockets' `serve` get the gate and routes; yields
     a list that gains an entry per server so wrapped (empty: the check was not installed)."""
     module = websockets.asyncio.server
@@ -203,8 +232,8 @@ def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str
 
     def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
         wrapped.append(True)
-        return original(route(handler, routes), *args, process_request=guard(gate, process_request, routes, pages),
-                        **kwargs)
+        return original(route(handler, routes), *args,
+                        process_request=guard(gate, process_request, routes, pages, head), **kwargs)
 
     with _SERVE_LOCK:
         module.serve = serve
@@ -215,13 +244,14 @@ def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str
 
 
 def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,
-                  routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None) -> T:
+                  routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None,
+                  head: bytes | None = None) -> T:
     """`start()` (which must start a viser server and return it) with the gate and routes installed.
 
     Raises RuntimeError (after `stop`) if the server did not start through the
     wrapped call, so a session never serves without its token check.
     """
-    with _guarded_serve(gate, routes, pages) as wrapped:
+    with _guarded_serve(gate, routes, pages, head) as wrapped:
         server = start()
     if not wrapped:
         stop(server)

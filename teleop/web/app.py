@@ -40,6 +40,7 @@ from teleop.web.page_devices import PageInputs
 from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
 from teleop.web.panel import Panel, PanelDevice
 from teleop.web.sim_thread import SimThread, Snapshot
+from teleop.web.view_quality import head_script, simplify
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
     from teleop.takeover import Takeover
@@ -98,14 +99,16 @@ class WebApp:
             self.page_keys = PageKeys(keyboard)
         # Gamepads, the phone page and WebHID SpaceMice: devices fed by pages over the same channel.
         self.page_inputs = PageInputs(self.page_keys, self.devices)
-        if self.page_keys is not None or self.page_inputs.any_device:
-            self.input.listener = self.page_inputs
+        self.page_inputs.on_view = self._view_reported
+        self.software_views: set[int] = set()  # viser clients drawing in software, given the cheap view
+        self.input.listener = self.page_inputs  # every page talks: at least to say how it draws
         pages = {PHONE_PATH: PageInputs.phone_page()} if self.page_inputs.phone is not None else {}
         if pages:
             self.phone_url = url_with_token(self.url + PHONE_PATH, token)
         check_port_free(host, port)
         self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
-                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages)
+                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages,
+                                    head=head_script())
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
@@ -177,19 +180,27 @@ class WebApp:
 
     # -- hooks from the threads ------------------------------------------
     def _client_connected(self, client: viser.ClientHandle) -> None:
-        if self.input.listener is not None:
-            # The page's input script, with this page's client id; viser has no public call for this.
-            source = self.page_keys.script(client.client_id) if self.page_keys is not None else \
-                channel_script(client.client_id, keys=[])
-            if self.page_inputs.any_device:
-                source += self.page_inputs.script()
-            client._websock_connection.queue_message(RunJavascriptMessage(source=source))  # noqa: SLF001
+        # The page's input script, with this page's client id; viser has no public call for this.
+        source = self.page_keys.script(client.client_id) if self.page_keys is not None else \
+            channel_script(client.client_id, keys=[])
+        if self.page_inputs.any_device:
+            source += self.page_inputs.script()
+        client._websock_connection.queue_message(RunJavascriptMessage(source=source))  # noqa: SLF001
         self._clients_changed()
 
     def _client_disconnected(self, client: viser.ClientHandle) -> None:
         if self.page_keys is not None:
             self.page_keys.release_client(client.client_id)
+        self.software_views.discard(client.client_id)
         self._clients_changed()
+
+    def _view_reported(self, client_id: int, software_gl: bool) -> None:
+        """A page said how it draws WebGL (network thread): a CPU gets a view it can draw quickly."""
+        client = self.server.get_clients().get(client_id)
+        if client is None or not software_gl or client_id in self.software_views:
+            return
+        self.software_views.add(client_id)
+        simplify(client)
 
     def _clients_changed(self) -> None:
         count = len(self.server.get_clients())
@@ -290,6 +301,7 @@ class WebApp:
             "ik_failures": snap.ik_failures,
             "objects": objects,
             "clients": len(self.server.get_clients()),
+            "software_views": len(self.software_views),
             "web_update_ms": round(self.drawer.update_ms(), 3),
             "web_updates": self.drawer.updates,
             "latency_ms": None if self.drawer.latency_ms is None else round(self.drawer.latency_ms, 2),

@@ -9,6 +9,7 @@ ever sees a message that is not one of these.
 Messages are JSON objects of at most MAX_BYTES, text frames, with exactly the
 fields of their type:
   {"type": "hello", "client": 3, "agent": "Mozilla/5.0 ..."}   who this page is
+  {"type": "view", "client": 3, "software_gl": true}            its WebGL draws in software (no GPU)
   {"type": "key", "key": "w", "down": true}                    a bound key, as KeyboardEvent.key
   {"type": "release_all", "why": "blur"}                       the page lost focus or is going
   {"type": "gamepad", "id": "Xbox ...", "axes": [..], "buttons": [..], "connected": true}
@@ -47,6 +48,12 @@ class Rejected(ValueError):
 class Hello:
     client: int | None  # viser's client id of the page, for naming it on the panel
     agent: str
+
+
+@dataclass(frozen=True)
+class View:
+    client: int | None  # viser's client id of the page
+    software_gl: bool  # WebGL drawn by a CPU renderer (SwiftShader, llvmpipe): teleop/web/view_quality.py
 
 
 @dataclass(frozen=True)
@@ -96,9 +103,10 @@ class HidDisconnect:
     pass
 
 
-InputMessage = Hello | Key | ReleaseAll | Gamepad | Phone | PhoneButton | Hid | HidConnect | HidDisconnect
+InputMessage = Hello | View | Key | ReleaseAll | Gamepad | Phone | PhoneButton | Hid | HidConnect | HidDisconnect
 FIELDS: dict[str, frozenset[str]] = {
     "hello": frozenset({"type", "client", "agent"}),
+    "view": frozenset({"type", "client", "software_gl"}),
     "key": frozenset({"type", "key", "down"}),
     "release_all": frozenset({"type", "why"}),
     "gamepad": frozenset({"type", "id", "axes", "buttons", "connected"}),
@@ -196,7 +204,7 @@ def parse(raw: str | bytes) -> InputMessage:
     if not isinstance(kind, str) or kind not in FIELDS:
         raise Rejected(f"unknown type {str(kind)[:20]!r}")
     extra = set(data) - FIELDS[kind]
-    missing = FIELDS[kind] - set(data) - ({"client"} if kind == "hello" else set())
+    missing = FIELDS[kind] - set(data) - ({"client"} if kind in ("hello", "view") else set())
     if extra or missing:
         raise Rejected(f"{kind}: " + ", ".join([*(f"unknown field {f[:20]!r}" for f in sorted(extra)),
                                                  *(f"missing {f!r}" for f in sorted(missing))]))
@@ -210,10 +218,16 @@ def parse(raw: str | bytes) -> InputMessage:
         if name is None:
             raise Rejected(f"key: {key[:20]!r} is not bound")
         return Key(name, down)
-    if kind == "hello":
-        client, agent = data.get("client"), data["agent"]
+    if kind in ("hello", "view"):
+        client = data.get("client")
         if client is not None and (type(client) is not int or not 0 <= client <= MAX_CLIENT_ID):
-            raise Rejected("hello: 'client' must be a whole number from 0 or null")
+            raise Rejected(f"{kind}: 'client' must be a whole number from 0 or null")
+    if kind == "view":
+        if not isinstance(data["software_gl"], bool):
+            raise Rejected("view: 'software_gl' must be true or false")
+        return View(client, data["software_gl"])
+    if kind == "hello":
+        agent = data["agent"]
         if not isinstance(agent, str) or len(agent) > MAX_AGENT:
             raise Rejected(f"hello: 'agent' must be a string of at most {MAX_AGENT} characters")
         return Hello(client, agent)

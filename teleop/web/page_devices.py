@@ -1,4 +1,5 @@
-"""The input channel's listener for everything a page sends: keys, gamepads, the phone page, WebHID.
+"""The input channel's listener for everything a page sends: keys, gamepads, the phone page, WebHID,
+and whether its WebGL draws in software (handed to the app: teleop/web/view_quality.py).
 
 Messages arrive validated (`input_messages.parse`) on the network thread and go
 straight into the devices' own locked mailboxes (`devices/gamepad.py`,
@@ -10,12 +11,15 @@ answering pings: a pad's sticks, the phone's clutch, a SpaceMouse's deflection.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from devices.gamepad import GamepadDevice
 from devices.phone import PhoneDevice
 from devices.webhid import BrowserHidHandle, WebHidSpaceMouse
-from teleop.web.input_messages import Gamepad, Hid, HidConnect, HidDisconnect, InputMessage, Phone, PhoneButton
+from teleop.web.input_messages import (
+    Gamepad, Hid, HidConnect, HidDisconnect, InputMessage, Phone, PhoneButton, View,
+)
 from teleop.web.page_keyboard import PageKeys
 
 SCRIPT = Path(__file__).with_name("page_devices.js")
@@ -34,6 +38,7 @@ class PageInputs:
         self._hid: dict[int, BrowserHidHandle] = {}  # connection -> its WebHID device's reports
         self._lock = threading.Lock()
         self.unused = 0  # valid messages for a device this session does not run
+        self.on_view: Callable[[int, bool], None] | None = None  # (viser client id, software WebGL)
 
     @property
     def any_device(self) -> bool:
@@ -54,7 +59,10 @@ class PageInputs:
             self.keys.opened(conn, remote)
 
     def received(self, conn: int, message: InputMessage) -> None:
-        if isinstance(message, Gamepad):
+        if isinstance(message, View):
+            if self.on_view is not None and message.client is not None:
+                self.on_view(message.client, message.software_gl)
+        elif isinstance(message, Gamepad):
             self._gamepad(conn, message)
         elif isinstance(message, Phone):
             self._with("phone", conn, lambda p: p.push_pose(message.quat, message.pos, message.clutch))

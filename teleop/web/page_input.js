@@ -27,7 +27,13 @@
   const send = (message) => {
     if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
   };
-  const hello = () => send({ type: "hello", client: config.client, agent: navigator.userAgent.slice(0, 200) });
+  // Whether this browser draws WebGL on the CPU (no GPU, or acceleration off), as the script first in the
+  // page found out (teleop/web/view_quality.py): the server then gives this page a view a CPU draws quickly.
+  const isSoftwareGl = () => window.__teleopSoftwareGl === true;
+  const hello = () => {
+    send({ type: "hello", client: config.client, agent: navigator.userAgent.slice(0, 200) });
+    send({ type: "view", client: config.client, software_gl: isSoftwareGl() });
+  };
 
   const url = () => {
     const scheme = window.location.protocol === "https:" ? "wss://" : "ws://";

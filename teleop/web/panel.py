@@ -249,7 +249,9 @@ class Panel(LoopThread):
             f"headroom {sim.headroom():.0f}x",
             f"IK error: **{errors} mm** · IK failures {snap.ik_failures}",
             f"Latency (input → drawn): **{_fmt(app.drawer.latency_ms, 'ms')}** · scene update {app.drawer.update_ms():.2f} ms",
-            f"Browsers: {len(self.server.get_clients())}",
+            f"Browsers: {len(self.server.get_clients())}" + (
+                f" · {len(app.software_views)} drawing without a GPU (half resolution, no shadows or environment light there)"
+                if app.software_views else ""),
         ])
 
     def _set(self, key: str, handle, text: str) -> None:
