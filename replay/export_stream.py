@@ -53,6 +53,19 @@ class _Job:
 
 
 _DONE = object()
+
+
+def _put_unless(out: queue.Queue, item, stop: threading.Event) -> bool:
+    """Queue an item unless `stop` is set (the consumer has gone); False: stop producing."""
+    while not stop.is_set():
+        try:
+            out.put(item, timeout=0.1)
+            return True
+        except queue.Full:
+            continue
+    return False
+
+
 WORKER_AHEAD = 16  # frames a render worker may run ahead of the stream's thread
 
 
@@ -95,13 +108,7 @@ class _RenderWorker:
         self._thread.join()
 
     def _put(self, item) -> bool:
-        while not self._stop.is_set():
-            try:
-                self._out.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
+        return _put_unless(self._out, item, self._stop)
 
     def _run(self, model: mujoco.MjModel, size: tuple[int, int]) -> None:
         try:
@@ -195,14 +202,7 @@ class FrameStream:
     # -- the thread -----------------------------------------------------------
 
     def _put(self, item) -> bool:
-        """Queue an item unless the consumer has gone; False: stop producing."""
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
+        return _put_unless(self._queue, item, self._stop)
 
     def _run(self, model: mujoco.MjModel, size: tuple[int, int], cameras: list[str]) -> None:
         renderer = None
