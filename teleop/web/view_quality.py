@@ -14,8 +14,10 @@ Two changes, for such a browser only:
 - before viser's code runs, a script in the page (`head_script`) asks viser to
   draw at half the display's resolution (its `fixedDpr` URL setting, which a
   user can also set by hand: `?fixedDpr=1` keeps full resolution). Frame time
-  follows pixel count: with it, a key reached the control tick in ~19 ms (median,
-  the bench's `browser_key_latency_ms`) against 100-130 ms at full resolution;
+  follows pixel count: with it a key reached the control tick in 26-44 ms (the
+  bench's `browser_key_latency_ms`, a median that includes up to one 33 ms tick
+  of waiting), against 100-130 ms at full resolution and 130-240 ms with viser's
+  full look;
 - the page reports its renderer (page_input.js, a `view` message) and the server
   changes that browser's scene through viser's per-client API: no shadows
   (teleop's bodies then cast none onto the floor), no environment map, and a
