@@ -281,8 +281,8 @@ GPU_RENDERER = """
 def test_a_browser_drawing_in_software_gets_the_cheap_view_and_others_keep_viser_s(page, server, browser):
     """Headless Chromium draws WebGL with SwiftShader: the page draws at half resolution and gets no shadows or
     environment map (teleop/web/view_quality.py); a page that reports a GPU renderer keeps viser's look."""
-    status = server.wait_for(lambda s: s["software_views"] >= 1, what="the page to report software WebGL")
-    assert status["software_views"] == 1 and status["clients"] == 1
+    # this module's one page left (an earlier test's second page may still be closing), counted as software
+    server.wait_for(lambda s: s["clients"] == 1 and s["software_views"] == 1, what="the page to report software WebGL")
     page.get_by_text("1 drawing without a GPU", exact=False).first.wait_for(state="attached", timeout=15000)
     # viser was asked, before it started, for half the display's resolution (its fixedDpr setting)...
     assert page.evaluate("new URLSearchParams(location.search).get('fixedDpr')") == "0.5"
