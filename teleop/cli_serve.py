@@ -48,7 +48,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     # Lazy: the browser server (viser, mjviser) takes 1-2 s to import; only this command needs it.
-    from teleop.serve import serve
+    from teleop.serve import asks_for_keyboard, serve
     from teleop.web.camera_view import warm_up
     from teleop.web.net import check_port_free
 
@@ -62,7 +62,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed,
                  status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True),
                  policy=policy, token=token, no_token=args.no_token,
-                 page_keyboard=any(w.strip().partition(":")[0].lower() == "keyboard" for w in args.device.split(",")))
+                 page_keyboard=asks_for_keyboard(args.device.split(",")))
 
 
 def _load_policy(args: argparse.Namespace):

@@ -26,6 +26,11 @@ if TYPE_CHECKING:  # annotations only
 DEFAULT_DEVICES = SERVE_DEVICES  # also teleop serve's --device default
 
 
+def asks_for_keyboard(words: list[str]) -> bool:
+    """Whether a --device list names the keyboard (then keys typed in the page drive too, started or not)."""
+    return any(w.strip().partition(":")[0].lower() == "keyboard" for w in words)
+
+
 def serve(
     session: Session,
     devices: Sequence[str | Device] = DEFAULT_DEVICES,
@@ -62,8 +67,7 @@ def serve(
     words = [d for d in devices if isinstance(d, str)]
     started = [d for d in devices if not isinstance(d, str)]
     if page_keyboard is None:
-        page_keyboard = any(w.strip().partition(":")[0].lower() == "keyboard" for w in words) or \
-            any(d.kind == "keyboard" for d in started)
+        page_keyboard = asks_for_keyboard(words) or any(d.kind == "keyboard" for d in started)
     problems = list(problems)
     if words:
         options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)

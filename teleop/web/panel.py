@@ -16,6 +16,7 @@ import numpy as np
 import viser
 
 from devices.command import Command
+from devices.gamepad import MAPPING as GAMEPAD_MAPPING
 from teleop.web.loop_thread import LoopThread
 from teleop.web.page_keyboard import PageKeyboardDevice
 
@@ -124,8 +125,7 @@ class Panel(LoopThread):
             if app.phone_url is not None:
                 gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see README)")
             if app.page_inputs.gamepad is not None:
-                gui.add_markdown("Gamepad: left stick x/y · RT/LT up/down · right stick yaw (LB roll/pitch, RB yaw/pitch) · "
-                                 "A gripper · B reset · Start record/stop · Back discard")
+                gui.add_markdown("Gamepad: " + " · ".join(f"**{control}** {action}" for control, action in GAMEPAD_MAPPING))
         self.notes_md = gui.add_markdown("")
         self._wire()
 
