@@ -27,7 +27,7 @@ def _circle(i: int, radius: float = 0.08) -> np.ndarray:
 
 
 def measure(quick: bool = False) -> dict[str, float]:
-    from teleop.session import Session
+    from teleop.control.session import Session
 
     n = 300 if quick else 2000
     session = Session("lift", "panda", seed=0, control_hz=20.0)

@@ -2,7 +2,7 @@
 
 Figures (`measure`), lift with the Panda, joint actions, 30 Hz, cameras front and
 wrist rendered at 96x96 by the export's renderer:
-  eval_steps_per_s       environment steps per second of wall time in `teleop.evaluate`'s
+  eval_steps_per_s       environment steps per second of wall time in `teleop.learn.evaluate`'s
                          loop (observe, policy on the CPU, step), median over episodes
                          of 2 simulated seconds (60 steps; scene build and reset included)
   eval_policy_ms         median time of the small policy's select_action alone
@@ -84,7 +84,7 @@ def _env_step_ms(cameras: tuple[str, ...], steps: int) -> float:
 
 
 def measure(quick: bool = False) -> dict[str, float]:
-    from teleop.evaluate import EvalOptions, evaluate
+    from teleop.learn.evaluate import EvalOptions, evaluate
 
     policy = _small_policy()
     timed: list[float] = []

@@ -77,7 +77,7 @@ def export_rate(paths: list[Path], out: Path, vcodec: str | None = None, workers
 
 def export_run(paths: list[Path], out: Path, vcodec: str | None = None, workers: int = 1) -> tuple[float, float]:
     """(frames/s as the export's summary times it, wall seconds of the whole call)."""
-    from replay.export import ExportOptions, export_dataset
+    from replay.export.dataset import ExportOptions, export_dataset
 
     opts = ExportOptions(
         out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False,
@@ -98,10 +98,10 @@ def measure(quick: bool) -> dict[str, float]:
 
 
 def _measure(quick: bool) -> dict[str, float]:
-    from teleop.cli_export import quiet_environment
+    from teleop.cli.export import quiet_environment
 
     quiet_environment()  # as `teleop export`: no encoder banners or extra progress bars
-    from replay.export import _lerobot
+    from replay.export.dataset import _lerobot
     from replay.render import DEFAULTS, TUNED
 
     with tempfile.TemporaryDirectory(prefix="bench_export_") as tmp:

@@ -42,7 +42,7 @@ def record_sources(task: str, directory: Path, seeds=(0, 1, 2)) -> list[Path]:
 
 
 def _generate(sources: list[Path], out: Path, num: int, workers: int, attempts: int):
-    from teleop.generate import GenerateOptions, generate
+    from teleop.generate.generator import GenerateOptions, generate
 
     opts = GenerateOptions(out=out, num=num, seed=FIRST_NEW_SEED, workers=workers, max_attempts=attempts,
                            progress=False)

@@ -14,7 +14,7 @@ import sys
 
 from rich.console import Console
 
-from teleop.json_output import json_stdout, print_json
+from teleop.cli.json_output import json_stdout, print_json
 
 MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval")
 

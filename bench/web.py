@@ -57,7 +57,7 @@ def update_cost_ms(updates: int) -> float:
     import viser
 
     from devices.command import Command
-    from teleop.session import Session
+    from teleop.control.session import Session
     from teleop.web.drawing import SceneDrawer
     from teleop.web.sim_thread import SimThread
 
@@ -207,7 +207,7 @@ def key_latency(presses: int, hide_3d: bool = False) -> dict[str, float]:
     """
     from playwright.sync_api import sync_playwright
 
-    from teleop.session import Session
+    from teleop.control.session import Session
     from teleop.web.app import WebApp
     from tests import browser as headless
 

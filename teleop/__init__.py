@@ -27,12 +27,12 @@ from devices.script import ScriptDevice
 from devices.spacemouse import SpaceMouseDevice
 from recorder.format import EpisodeMeta
 from replay import Episode, VerifyResult, load_episode, replay_states, resimulate
-from replay.export import ExportOptions, ExportSummary, export_dataset
+from replay.export.dataset import ExportOptions, ExportSummary, export_dataset
 from scenes.errors import TeleopError
-from teleop.controller import Controller, StepResult
-from teleop.loop import EpisodeResult, run_episode
-from teleop.recording import Recorder
-from teleop.session import Session
+from teleop.control.controller import Controller, StepResult
+from teleop.control.loop import EpisodeResult, run_episode
+from teleop.control.recording import Recorder
+from teleop.control.session import Session
 
 __all__ = [
     "Command",
@@ -100,10 +100,10 @@ def export_lerobot(
 
 
 def __getattr__(name: str):
-    """`teleop.serve` loads the browser server (viser, mjviser: 1-2 s) on first use, so
+    """`teleop.web.serve` loads the browser server (viser, mjviser: 1-2 s) on first use, so
     `import teleop` and the command line stay quick for everything that does not serve."""
     if name == "serve":
-        from teleop.serve import serve  # lazy: heavy, and only a browser session needs it
+        from teleop.web.serve import serve  # lazy: heavy, and only a browser session needs it
 
         return serve
     raise AttributeError(f"module 'teleop' has no attribute {name!r}")

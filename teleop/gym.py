@@ -8,7 +8,7 @@ One id per built-in scene and robot that can do it: `teleop/{scene}-{robot}-v0`
 (bimanual scenes with the bimanual robot, single-arm scenes with single arms).
 Options (`gymnasium.make` keywords, or `make_env`'s): control_hz, cameras,
 image_size (width, height), action (joint | ee_delta | ee_pose, as the export),
-max_seconds, seed, render_mode ("rgb_array"). See `teleop.gym_env.TeleopEnv`.
+max_seconds, seed, render_mode ("rgb_array"). See `teleop.learn.gym_env.TeleopEnv`.
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from typing import Any
 import gymnasium
 
 from scenes import BUILTIN_ROBOTS, TASKS, RobotSpec, load_robot
-from teleop.gym_env import TeleopEnv
+from teleop.learn.gym_env import TeleopEnv
 
 NAMESPACE = "teleop"
-ENTRY_POINT = "teleop.gym_env:TeleopEnv"
+ENTRY_POINT = "teleop.learn.gym_env:TeleopEnv"
 
 
 def env_id(scene: str, robot: str) -> str:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from devices.command import Command
-from teleop.session import Session
+from teleop.control.session import Session
 
 
 @pytest.mark.parametrize("moving", [0, 1])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from scenes import SceneError, load_robot
-from teleop.session import Session
+from teleop.control.session import Session
 from tests.conftest import assert_one_line_error, run_cli, run_json
 
 # A 6-DoF arm unlike the built-ins: an elbow-up anthropomorphic arm driven by

@@ -162,7 +162,7 @@ def test_hdf5_cut_file_keeps_its_flushed_rows_and_an_honest_count(tmp_path):
 
     from recorder import RecorderError
     from teleop import Recorder, Session
-    from teleop.loop import run_episode
+    from teleop.control.loop import run_episode
 
     # Room for the file's first 256-row chunks, not for the next ones.
     with small_fs(tmp_path, 1000, 1_000_000) as fs:

@@ -22,8 +22,8 @@ os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
 import teleop  # noqa: E402
 from replay import load_episode  # noqa: E402
-from teleop.evaluate import EvalOptions, evaluate, wilson_interval  # noqa: E402
-from teleop.policy import Policy, PolicyMismatch, ScriptedPolicy, check_features  # noqa: E402
+from teleop.learn.evaluate import EvalOptions, evaluate, wilson_interval  # noqa: E402
+from teleop.learn.policy import Policy, PolicyMismatch, ScriptedPolicy, check_features  # noqa: E402
 
 PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
@@ -141,9 +141,9 @@ def test_a_missing_folder_and_bad_episodes_are_one_line(tmp_path):
 def test_a_trained_checkpoint_drives_a_served_session_until_taken_over(trained):
     """`teleop serve --policy` with the trained checkpoint: its cameras and rate, its actions as ctrl."""
     from devices.gizmo import GizmoDevice
-    from teleop.loop import run_episode
-    from teleop.policy import LeRobotPolicy
-    from teleop.takeover import Takeover
+    from teleop.control.loop import run_episode
+    from teleop.learn.policy import LeRobotPolicy
+    from teleop.learn.takeover import Takeover
 
     policy = LeRobotPolicy.load(trained["model"])
     with pytest.raises(PolicyMismatch, match="trained on 15 frames/s; the session runs at 30 Hz"):

@@ -24,7 +24,7 @@ import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
 from replay import load_episode  # noqa: E402
-from replay.export import ExportError, ExportOptions, export_dataset  # noqa: E402
+from replay.export.dataset import ExportError, ExportOptions, export_dataset  # noqa: E402
 
 HZ = "15"
 SIZE = "64x64"
@@ -226,7 +226,7 @@ def test_append_to_a_channel_first_dataset_keeps_its_layout(recorded, tmp_path):
 
 
 def test_image_stats_are_per_channel_and_match_the_frames(exported):
-    """LeRobot's per-frame image statistics (what normalization uses), counted per channel (replay/export_stats.py)."""
+    """LeRobot's per-frame image statistics (what normalization uses), counted per channel (replay/export/stats.py)."""
     ds = _open(exported["out"])
     for key in ("observation.images.front", "observation.images.wrist"):
         stats = ds.meta.stats[key]
@@ -363,7 +363,7 @@ def test_bad_flags_and_files(recorded, tmp_path):
 
 
 def test_without_lerobot_says_which_extra(recorded, tmp_path):
-    code = ("import sys; sys.modules['lerobot'] = None; from teleop.cli import main; "
+    code = ("import sys; sys.modules['lerobot'] = None; from teleop.cli.entry import main; "
             f"sys.exit(main(['export', {str(recorded['dir'])!r}, '--out', {str(tmp_path / 'x')!r}, '--repo-id', 't/x']))")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from replay import load_episode, replay_states
-from replay.export_frames import feature_key
+from replay.export.frames import feature_key
 from replay.render import DEFAULTS, TUNED, FastRenderer, RenderError, tune_model
 from tests.conftest import ROOT, run_json
 
@@ -90,7 +90,7 @@ def test_camera_feature_keys_are_valid_names():
 def test_the_export_stream_renders_cameras_in_two_threads_as_one_renderer_does(episode):
     """The stream splits the cameras between its thread and a render worker (a GL context each): the frames
     are the ones a single renderer draws, in order, for every camera."""
-    from replay.export_stream import EpisodeEnd, FrameStream
+    from replay.export.stream import EpisodeEnd, FrameStream
 
     model = episode.build_model()
     cameras = ["front", "overhead", "wrist"]

@@ -12,7 +12,7 @@ import pytest
 
 import lerobot.datasets.compute_stats as compute_stats
 from replay import load_episode, replay_states
-from replay.export_stats import image_stats
+from replay.export.stats import image_stats
 from replay.render import FastRenderer
 from tests.conftest import ROOT, run_json
 

@@ -21,7 +21,7 @@ import pytest
 import teleop
 from recorder.annotations import read_subtasks, sidecar_path
 from replay.annotate import auto_subtasks
-from teleop.generate import GenerateError, GenerateOptions, generate
+from teleop.generate.generator import GenerateError, GenerateOptions, generate
 from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json, write_script
 
 SCRIPTS = {"lift": "lift_pick.json", "pick_place": "pick_place.json", "stack": "stack_pick.json", "door": "door_push.json"}
@@ -118,7 +118,7 @@ def test_generation_reaches_the_goal_and_episodes_replay_exactly(task, sources, 
     first = teleop.load_episode(summary.files[0])
     assert first.meta.source == "generated" and first.meta.success
     assert set(first.meta.source_episodes) <= names and first.meta.source_episodes
-    assert first.meta.generator["name"] == "teleop.generate" and first.meta.seed in summary.seeds
+    assert first.meta.generator["name"] == "teleop.generate.generator" and first.meta.seed in summary.seeds
     assert first.meta.seed >= 1000  # a new scene, not a source's
     assert teleop.resimulate(first).bit_exact
     # carried into the new scene: the grasp happens where this seed put the cube, not where a source had it

@@ -8,8 +8,8 @@ import pytest
 from devices.script import ScriptDevice
 from scenes import BUILTIN_ROBOTS, load_robot
 from devices.command import Command
-from teleop.controller import physics_split
-from teleop.session import Session
+from teleop.control.controller import physics_split
+from teleop.control.session import Session
 
 from tests.conftest import write_script
 

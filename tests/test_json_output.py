@@ -65,7 +65,7 @@ def test_json_mode_sends_python_c_and_child_writes_to_stderr():
         """
         import os, subprocess, sys
         from rich.console import Console
-        from teleop.json_output import json_stdout, print_json
+        from teleop.cli.json_output import json_stdout, print_json
         early = sys.stdout
         with json_stdout():
             print("python print")

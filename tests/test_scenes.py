@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from scenes import BUILTIN_ROBOTS, TASKS, build_scene, load_robot
-from teleop.session import Session
+from teleop.control.session import Session
 
 PAIRS = [
     (robot, task)

@@ -24,7 +24,7 @@ from recorder.format import META_END_NAME, META_NAME, SCHEMA_VERSION, EpisodeMet
 from replay import load_episode, resimulate
 from replay.convert import convert_episode
 from replay.episode import summarize
-from teleop.cli import main
+from teleop.cli.entry import main
 
 STEPS = 60
 ROW_FIELDS = ("time", "wall_time", "state", "ctrl", "ee_target", "ee_pose", "qpos", "qvel", "gripper")

@@ -20,11 +20,11 @@ from devices.command import Command
 from devices.gizmo import GizmoDevice
 from recorder.format import CONTROL_HUMAN, CONTROL_POLICY
 from replay import load_episode
-from replay.export import ExportOptions, export_dataset
-from teleop.gym_env import TeleopEnv
-from teleop.loop import run_episode
-from teleop.policy import PolicyMismatch, ScriptedPolicy
-from teleop.takeover import Takeover, moves_arm
+from replay.export.dataset import ExportOptions, export_dataset
+from teleop.learn.gym_env import TeleopEnv
+from teleop.control.loop import run_episode
+from teleop.learn.policy import PolicyMismatch, ScriptedPolicy
+from teleop.learn.takeover import Takeover, moves_arm
 from teleop.web.panel import PanelDevice
 from tests.browser import free_port
 from tests.conftest import ROOT, assert_one_line_error, run_cli

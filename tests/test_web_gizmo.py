@@ -116,7 +116,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
 
 
 def test_speed_sliders_set_keyboard_and_spacemouse_speeds():
-    from teleop.session import Session
+    from teleop.control.session import Session
     from teleop.web.app import WebApp
 
     class HoldToMove:

@@ -29,7 +29,7 @@ from devices.base import SpeedControlled
 from devices.keyboard import KeyboardDevice
 from replay import VerifyResult
 from teleop.errors import UsageError
-from teleop.session import Session
+from teleop.control.session import Session
 from teleop.web.access import Gate, start_guarded, url_with_token
 from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
 from teleop.web.drawing import SceneDrawer
@@ -43,7 +43,7 @@ from teleop.web.sim_thread import SimThread, Snapshot
 from teleop.web.view_quality import head_script, simplify
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
-    from teleop.takeover import Takeover
+    from teleop.learn.takeover import Takeover
 
 STATUS_PERIOD_S = 0.2
 PHONE_PATH = "/phone"  # the phone page (teleop/web/phone.html), served beside viser's

@@ -7,8 +7,8 @@ figures the page shows) that drawing, camera and panel threads read without
 any lock, so the physics MjData is touched by nothing but ctrl and mj_step:
 that is what keeps recordings exactly replayable, however many browsers watch.
 
-The ticks run through the one episode loop (`teleop.loop.run_episode`),
-paced to the wall clock on an absolute schedule (`teleop.loop.Pacer`): short
+The ticks run through the one episode loop (`teleop.control.loop.run_episode`),
+paced to the wall clock on an absolute schedule (`teleop.control.loop.Pacer`): short
 stalls are caught up, a lag over a second is dropped and counted as a slip.
 Episodes start and end by the operator's events, not by the loop.
 """
@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from teleop.controller import StepResult
-from teleop.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
-from teleop.session import Session
+from teleop.control.controller import StepResult
+from teleop.control.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
+from teleop.control.session import Session
 from teleop.web.loop_thread import LoopThread
 
 RATE_WINDOW_S = 1.0
@@ -77,7 +77,7 @@ class SimThread(LoopThread):
     def __init__(self, session: Session, devices: list, log: Callable[[str], None] = print,
                  steer: Steer | None = None) -> None:
         self.session = session
-        self.steer = steer  # a policy that drives until the operator takes over (teleop.takeover)
+        self.steer = steer  # a policy that drives until the operator takes over (teleop.learn.takeover)
         self.devices = list(devices)
         self.log = log
         self.lock = threading.Lock()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from teleop.cli_run import add_session_args, make_session, open_session_devices
+from teleop.cli.run import add_session_args, make_session, open_session_devices
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
 
 
@@ -48,7 +48,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     # Lazy: the browser server (viser, mjviser) takes 1-2 s to import; only this command needs it.
-    from teleop.serve import asks_for_keyboard, serve
+    from teleop.web.serve import asks_for_keyboard, serve
     from teleop.web.camera_view import warm_up
     from teleop.web.net import check_port_free
 
@@ -67,11 +67,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def _load_policy(args: argparse.Namespace):
     """The --policy: a script, or a checkpoint read (one line if it is not one) and then loaded by LeRobot."""
-    from teleop.takeover import SCRIPT_PREFIX, load_policy
+    from teleop.learn.takeover import SCRIPT_PREFIX, load_policy
 
     if not args.policy.startswith(SCRIPT_PREFIX):
-        from teleop.cli_export import quiet_environment
-        from teleop.policy import Checkpoint
+        from teleop.cli.export import quiet_environment
+        from teleop.learn.policy import Checkpoint
 
         quiet_environment()  # before LeRobot loads: nothing from the Hub, no wall of decoder warnings
         Checkpoint(args.policy)  # a missing or wrong folder: one line before torch loads

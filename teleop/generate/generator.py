@@ -2,7 +2,7 @@
 
 The driver loads and annotates the sources once, then hands out batches of
 seeds. A worker (a process of its own, or a Ray task on any machine) builds each
-seed's scene, runs one generated attempt (teleop.generate_plan) through the same
+seed's scene, runs one generated attempt (teleop.generate.plan) through the same
 Session and loop as a person's episode, records it, checks it replays bit for
 bit, and returns the episode's bytes: the driver alone writes files, so a
 cluster needs no shared file system.
@@ -36,12 +36,12 @@ from replay.annotate import auto_subtasks
 from replay.cluster import connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
 from scenes.errors import TeleopError, first_line
-from teleop.generate_plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
-from teleop.loop import run_episode
-from teleop.recording import Recorder
-from teleop.session import Session
+from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
+from teleop.control.loop import run_episode
+from teleop.control.recording import Recorder
+from teleop.control.session import Session
 
-GENERATOR = "teleop.generate"
+GENERATOR = "teleop.generate.generator"
 GENERATOR_VERSION = 1
 FORMATS = ("mcap", "hdf5")
 

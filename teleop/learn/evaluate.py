@@ -24,13 +24,13 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from replay.export_frames import feature_key
+from replay.export.frames import feature_key
 from scenes import RobotSpec
 from scenes.errors import TeleopError
 from teleop.gym import make_env
-from teleop.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
-from teleop.policy import IMAGE_PREFIX, Policy, PolicyMismatch
-from teleop.recording import Recorder
+from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
+from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
+from teleop.control.recording import Recorder
 
 Z95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
 DEFAULT_SEED = 1000  # past the seeds that recording and generation start from (0, 1, ...)

@@ -35,11 +35,11 @@ from recorder import EpisodeWriter, RecorderError, next_episode_index
 from recorder.format import ArmMeta, EpisodeMeta
 from replay import VerifyResult, verify_file
 from scenes.errors import first_line
-from teleop.controller import Controller
-from teleop.record_row import RowFiller
+from teleop.control.controller import Controller
+from teleop.control.record_row import RowFiller
 
 if TYPE_CHECKING:  # annotations only: the session imports this module
-    from teleop.session import Session
+    from teleop.control.session import Session
 
 Verify = Literal["sync", "background", "off"]
 VERIFY_MODES = ("sync", "background", "off")
@@ -232,7 +232,7 @@ class Recorder:
             self.save(complete=exc_type is None)
         self.session.detach(self)
 
-    # -- the tick (teleop.controller.TickObserver) -------------------------------
+    # -- the tick (teleop.control.controller.TickObserver) -------------------------------
     def before_ctrl(self, controller: Controller) -> None:
         writer = self.writer
         if writer is None:

@@ -28,11 +28,11 @@ from pathlib import Path
 
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import TeleopError, first_line
-from replay.export_frames import (
+from replay.export.frames import (
     ACTION_MODES, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, robot_layout,
 )
-from replay.export_stats import image_stats
-from replay.export_stream import EpisodeEnd, FrameStream
+from replay.export.stats import image_stats
+from replay.export.stream import EpisodeEnd, FrameStream
 from replay.render import RenderError, warm_up
 
 LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
@@ -68,7 +68,7 @@ class ExportOptions:
     append: bool = False
     progress: bool = True
     on_episode: Callable[[int, int], None] | None = None  # (episodes, frames) written so far, after each save
-    workers: int = 1  # > 1: shards exported in that many processes, merged by LeRobot (replay/export_parallel.py)
+    workers: int = 1  # > 1: shards exported in that many processes, merged by LeRobot (replay/export/shards.py)
     ray: str | None = None  # "auto" or HOST:PORT / ray://HOST:PORT: the shards as tasks on a Ray cluster
     # The per-frame `intervention` feature (a person, not a policy, drove the frame). None: written when
     # an episode records who drove each step (a policy taken over in `teleop serve --policy`), or when
@@ -406,7 +406,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     paths = list(paths)
     check_options(opts)
     if opts.workers > 1 or opts.ray is not None:
-        from replay.export_parallel import export_parallel  # here, not at the top: that module builds on this one
+        from replay.export.shards import export_parallel  # here, not at the top: that module builds on this one
 
         return export_parallel(paths, opts, log)
     warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
@@ -441,7 +441,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     if why and opts.video and cameras:  # once the export goes ahead: an error stays the one line
         log(f"video: {decoder} decoder ({why})")  # slower reads in training, nothing wrong
     try:
-        with image_stats():  # LeRobot's per-frame image statistics, from value counts (replay/export_stats.py)
+        with image_stats():  # LeRobot's per-frame image statistics, from value counts (replay/export/stats.py)
             _write(ds, chosen, first, opts, cameras, stream, summary)
     except KeyboardInterrupt:
         summary.interrupted = True

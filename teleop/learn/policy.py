@@ -30,11 +30,11 @@ import numpy as np
 
 from devices.command import Command
 from devices.script import ScriptDevice
-from replay.export_frames import rotation_vector, is_channel_first
+from replay.export.frames import rotation_vector, is_channel_first
 from scenes.errors import TeleopError
 
 if TYPE_CHECKING:  # annotations only
-    from teleop.gym_env import Observation, TeleopEnv
+    from teleop.learn.gym_env import Observation, TeleopEnv
 
 IMAGE_PREFIX = "observation.images."
 CONFIG_NAME = "config.json"

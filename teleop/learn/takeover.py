@@ -31,10 +31,10 @@ from recorder.format import CONTROL_HUMAN, CONTROL_POLICY
 from scenes.errors import first_line
 from pathlib import Path
 
-from teleop.gym_env import TeleopEnv
-from replay.export_frames import feature_key
-from teleop.policy import LeRobotPolicy, Policy, PolicyMismatch, ScriptedPolicy
-from teleop.session import Session
+from teleop.learn.gym_env import TeleopEnv
+from replay.export.frames import feature_key
+from teleop.learn.policy import LeRobotPolicy, Policy, PolicyMismatch, ScriptedPolicy
+from teleop.control.session import Session
 
 Driver = Literal["policy", "operator"]
 HAND_BACK_EVENT = "policy"  # devices.command.EVENTS: the keyboard's `p`, the panel's button

@@ -3,7 +3,7 @@
 Every error a user can cause (a `TeleopError`: a flag, a file, a device, the disk)
 ends as one line on stderr and exit code 2;
 tracebacks are for bugs only. With `--json`, stdout carries the one JSON object
-and nothing else (teleop/json_output.py).
+and nothing else (teleop/cli/json_output.py).
 """
 
 from __future__ import annotations
@@ -13,9 +13,15 @@ import contextlib
 import signal
 import sys
 
-from teleop import cli_devices, cli_eval, cli_export, cli_generate, cli_record, cli_run, cli_serve
+from teleop.cli import devices as cli_devices
+from teleop.cli import eval as cli_eval
+from teleop.cli import export as cli_export
+from teleop.cli import generate as cli_generate
+from teleop.cli import record as cli_record
+from teleop.cli import run as cli_run
+from teleop.cli import serve as cli_serve
 from scenes.errors import TeleopError, first_line
-from teleop.json_output import json_stdout
+from teleop.cli.json_output import json_stdout
 
 MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export, cli_generate, cli_eval)
 

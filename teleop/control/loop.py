@@ -25,8 +25,8 @@ import numpy as np
 from devices.base import Device, InputStamped
 from devices.command import Command
 from scenes.errors import first_line
-from teleop.controller import StepResult
-from teleop.session import Session
+from teleop.control.controller import StepResult
+from teleop.control.session import Session
 
 MAX_LAG_S = 1.0  # behind schedule by more than this: drop the lost time (else catch up tick by tick)
 
@@ -147,7 +147,7 @@ def run_episode(
     guard, before_tick, after_tick: a lock held around each tick and hooks run
         inside it, for a loop that shares the session with other threads.
     steer: turns the devices' commands into what the tick runs, (commands, ctrl or
-        None): a policy driving until the operator takes over (teleop.takeover).
+        None): a policy driving until the operator takes over (teleop.learn.takeover).
     """
     if seconds is not None and seconds <= 0:
         raise ValueError("seconds must be positive")

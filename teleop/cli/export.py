@@ -79,7 +79,7 @@ def _workers(text: str) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     quiet_environment()
-    from replay.export import ExportError, ExportOptions, export_dataset, parse_cameras, parse_image_size
+    from replay.export.dataset import ExportError, ExportOptions, export_dataset, parse_cameras, parse_image_size
 
     try:
         opts = ExportOptions(

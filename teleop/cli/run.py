@@ -20,10 +20,10 @@ from recorder import RecorderError
 from scenes import BUILTIN_ROBOTS, TASKS
 from scenes.errors import TeleopError
 from teleop.errors import UsageError
-from teleop.json_output import print_json
-from teleop.loop import run_episode
-from teleop.recording import Recorder
-from teleop.session import Session
+from teleop.cli.json_output import print_json
+from teleop.control.loop import run_episode
+from teleop.control.recording import Recorder
+from teleop.control.session import Session
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -204,7 +204,7 @@ def _merged_error(episodes: list[dict]) -> dict:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Run the checkout's bench/ (not installed with the package) in a fresh process and pass its figures on."""
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     if not (root / "bench" / "run.py").is_file():
         raise UsageError("the bench needs a source checkout: bench/ is not installed with the package")
     benches = sorted(p.stem for p in (root / "bench").glob("*.py") if p.stem not in ("run", "__init__", "__main__"))

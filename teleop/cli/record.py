@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from teleop.errors import UsageError
-from teleop.json_output import print_json
+from teleop.cli.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:

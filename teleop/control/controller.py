@@ -21,7 +21,7 @@ import numpy as np
 from devices.command import Command
 from scenes import Scene, actuator_for_joint
 from scenes.arena import TABLE_TOP
-from teleop.ik import ArmIK
+from teleop.control.ik import ArmIK
 
 TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
 MAX_PHYSICS_STEP = 0.002  # s; the control period is split into equal steps no longer than this

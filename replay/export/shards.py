@@ -34,7 +34,7 @@ from pathlib import Path
 
 from replay.cluster import ClusterError, connect_ray
 from replay.errors import first_line
-from replay.export import (
+from replay.export.dataset import (
     LEROBOT_HINT,
     ExportError,
     ExportOptions,

@@ -4,7 +4,7 @@ The session builds the scene for a seed and the `Controller` that runs its
 ticks, turns episode events from devices (start, save, discard, reset) into
 calls on an attached `Recorder`, and offers devices the read-only view they may
 look at (`devices.view.SessionView`). Recording is the Recorder's business; the
-loop that polls devices and paces ticks is `teleop.loop.run_episode`.
+loop that polls devices and paces ticks is `teleop.control.loop.run_episode`.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ import numpy as np
 
 from devices.command import Command
 from scenes import RobotSpec, Scene, build_scene, load_robot
-from teleop.controller import ArmState, ControlStats, Controller, StepResult, physics_split
+from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, physics_split
 from teleop.errors import SessionError
 
 if TYPE_CHECKING:  # annotations only: the recorder module imports this one
-    from teleop.recording import Recorder
+    from teleop.control.recording import Recorder
 
 
 class Session:

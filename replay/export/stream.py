@@ -28,7 +28,7 @@ import mujoco
 
 from replay.engine import replay_states
 from replay.episode import Episode
-from replay.export_frames import INTERVENTION, FrameBuilder, intervention_values, robot_layout
+from replay.export.frames import INTERVENTION, FrameBuilder, intervention_values, robot_layout
 from replay.render import FastRenderer
 
 QUEUE_BYTES = 64 << 20  # frames waiting for LeRobot, at most (~200 frames of two 224x224 cameras)

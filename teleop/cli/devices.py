@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from teleop.json_output import print_json
+from teleop.cli.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:

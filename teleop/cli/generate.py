@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from teleop.errors import UsageError
-from teleop.json_output import print_json
+from teleop.cli.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -65,7 +65,7 @@ def cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from teleop.generate import GenerateOptions, generate
+    from teleop.generate.generator import GenerateOptions, generate
 
     if args.max_attempts is not None and args.max_attempts <= 0:
         raise UsageError(f"--max-attempts must be positive, got {args.max_attempts}")

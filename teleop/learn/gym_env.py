@@ -1,6 +1,6 @@
 """A task scene as a Gymnasium environment, observed and driven as the export records it.
 
-Observations and actions are the LeRobot export's (replay/export_frames.py):
+Observations and actions are the LeRobot export's (replay/export/frames.py):
 the same feature names and vector layouts, computed the same way. Each
 observation restores the session's state into a scratch MjData and
 mj_forward-s it, as the export replays a recorded state, then builds the
@@ -34,14 +34,14 @@ import numpy as np
 
 from devices.command import Command
 from recorder.format import EpisodeMeta
-from replay.export import DEFAULT_CAMERAS, ExportError, resolve_cameras, parse_cameras
-from replay.export_frames import ACTION_MODES, ArmLayout, FrameBuilder, feature_key, robot_layout
+from replay.export.dataset import DEFAULT_CAMERAS, ExportError, resolve_cameras, parse_cameras
+from replay.export.frames import ACTION_MODES, ArmLayout, FrameBuilder, feature_key, robot_layout
 from replay.render import FastRenderer
 from scenes import RobotSpec
 from teleop.errors import EnvError
-from teleop.gym_spaces import make_spaces
-from teleop.recording import arm_metas
-from teleop.session import Session
+from teleop.learn.gym_spaces import make_spaces
+from teleop.control.recording import arm_metas
+from teleop.control.session import Session
 
 INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
 DEFAULT_IMAGE_SIZE = (224, 224)  # width, height, as the export

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from teleop.errors import UsageError
-from teleop.json_output import print_json
+from teleop.cli.json_output import print_json
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -69,11 +69,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     seed = _whole("--seed", args.seed, 0)
     max_seconds = _positive("--max-seconds", args.max_seconds)
     control_hz = _positive("--control-hz", args.control_hz)
-    from teleop.cli_export import quiet_environment
+    from teleop.cli.export import quiet_environment
 
     quiet_environment()  # before LeRobot loads: nothing from the Hub
-    from teleop.evaluate import EvalOptions, evaluate, make_eval_env
-    from teleop.policy import Checkpoint, LeRobotPolicy
+    from teleop.learn.evaluate import EvalOptions, evaluate, make_eval_env
+    from teleop.learn.policy import Checkpoint, LeRobotPolicy
 
     checkpoint = Checkpoint(args.policy)  # a missing or wrong folder: one line before torch loads
     implied = checkpoint.env_options()

@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING
 
 from devices.base import Device
 from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
-from teleop.session import Session
+from teleop.control.session import Session
 from teleop.web.access import resolve_token
 from teleop.web.app import WebApp
 from teleop.web.net import check_port_free, exposure_warning, is_loopback
 
 if TYPE_CHECKING:  # annotations only
-    from teleop.policy import Policy
+    from teleop.learn.policy import Policy
 
 DEFAULT_DEVICES = SERVE_DEVICES  # also teleop serve's --device default
 
@@ -55,7 +55,7 @@ def serve(
     An episode in progress at the end is saved, marked incomplete.
     policy: a Policy, a LeRobot pretrained-model folder or `script:FILE`; it drives until
     the operator touches a device, and gets control back by the key `p` or the panel's
-    button (teleop.takeover). Recorded episodes then say who drove each step.
+    button (teleop.learn.takeover). Recorded episodes then say who drove each step.
     token: the secret every browser must bring (`?token=...` in the printed URL); default
     TELEOP_TOKEN, else none on loopback and a random one on any other host.
     no_token: serve a non-loopback host with no token (trusted networks; warns on stderr).
@@ -130,7 +130,7 @@ def serve(
 
 def _takeover(session: Session, policy, device: str):
     """The policy side, imported only when a policy drives (gymnasium, the export's renderer, LeRobot)."""
-    from teleop.takeover import Takeover, load_policy
+    from teleop.learn.takeover import Takeover, load_policy
 
     if not hasattr(policy, "select_action"):
         policy = load_policy(policy, device)

@@ -1,0 +1,1 @@
+"""Recorded episodes into LeRobot datasets: frames, rendering stream, image statistics, parallel shards."""

@@ -1,0 +1,1 @@
+"""Generating demonstrations from a few sources (MimicGen's method): the plan and the runner."""

@@ -1,0 +1,1 @@
+"""Policies and the environments they run in: Gymnasium envs, evaluation, policy takeover in a served session."""
