@@ -16,12 +16,14 @@ boundaries are those of what happened, not of what was asked.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from recorder.annotations import AnnotationError, Subtask, from_boundaries, read_subtasks, write_subtasks
+from recorder.format import ArmMeta
 from replay.episode import Episode, load_episode
 from scenes.tasks import TASKS, SubtaskSpec
 
@@ -61,13 +63,12 @@ def _object_bodies(model: mujoco.MjModel, name: str) -> set[int]:
 
 
 class _Contacts:
-    """Which gripper geoms touch an object at a recorded step."""
+    """Which gripper geoms touch an object at a recorded step (states: (T, nstate) mjSTATE_INTEGRATION)."""
 
-    def __init__(self, episode: Episode, arm: int = 0) -> None:
-        self.episode = episode
-        self.model = episode.build_model()
+    def __init__(self, model: mujoco.MjModel, states: np.ndarray, arm_meta: ArmMeta) -> None:
+        self.states = states
+        self.model = model
         self.data = mujoco.MjData(self.model)
-        arm_meta = episode.meta.arms[arm]
         site = self.model.site(arm_meta.ee_site).id
         self.gripper = _subtree(self.model, int(self.model.site_bodyid[site]))
         self.actuator = self.model.actuator(arm_meta.gripper_actuator).id if arm_meta.gripper_actuator else None
@@ -84,7 +85,7 @@ class _Contacts:
 
     def _at(self, k: int) -> mujoco.MjData:
         """The recorded state of step k, forward-computed (contacts, actuator velocities)."""
-        mujoco.mj_setState(self.model, self.data, self.episode.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_setState(self.model, self.data, self.states[k], mujoco.mjtState.mjSTATE_INTEGRATION)
         mujoco.mj_forward(self.model, self.data)
         return self.data
 
@@ -118,14 +119,31 @@ def auto_subtasks(episode: Episode, specs: Sequence[SubtaskSpec] | None = None, 
         raise AnnotationError(f"{name}: {steps} steps cannot hold {len(specs)} subtasks")
     if episode.gripper.ndim != 2 or episode.gripper.shape[1] <= arm:
         raise AnnotationError(f"{name}: no gripper commands recorded for arm {arm}")
-    closed = episode.gripper[:, arm] < CLOSED_BELOW
-    contacts = _Contacts(episode, arm)
+    for i, spec in enumerate(specs):
+        if spec.kind == "push" and i != len(specs) - 1:
+            raise AnnotationError(f"{name}: a push subtask ({spec.object}) must be the last")
+    model = episode.build_model()
+    ends, why = subtask_ends(model, episode.state, episode.gripper[:, arm], episode.meta.arms[arm], specs)
+    if why is not None:
+        raise NoGraspError(f"{name}: {why}")
+    return from_boundaries([s.object for s in specs], ends[: len(specs) - 1], steps)
+
+
+def subtask_ends(
+    model: mujoco.MjModel, states: np.ndarray, gripper: np.ndarray, arm_meta: ArmMeta, specs: Sequence[SubtaskSpec],
+) -> tuple[list[int], str | None]:
+    """The end steps of the gripper subtasks completed in order (the rules of the module doc), and
+    why the next one never ended (None: all did; a final push has no end of its own).
+
+    states: (T, nstate) mjSTATE_INTEGRATION per step; gripper: (T,) the commanded opening, 1 open .. 0 closed.
+    """
+    steps = len(states)
+    closed = np.asarray(gripper) < CLOSED_BELOW
+    contacts = _Contacts(model, states, arm_meta)
     ends: list[int] = []
     cursor, held = 0, None
-    for i, spec in enumerate(specs):
+    for spec in specs:
         if spec.kind == "push":
-            if i != len(specs) - 1:
-                raise AnnotationError(f"{name}: a push subtask ({spec.object}) must be the last")
             break
         obj = _object_bodies(contacts.model, spec.object)
         end = None
@@ -141,19 +159,74 @@ def auto_subtasks(episode: Episode, specs: Sequence[SubtaskSpec] | None = None, 
                     end = next((k for k in range(first, stop) if contacts.settled(k)), first)
                     break
             if end is None:
-                raise NoGraspError(f"{name}: no grasp of {spec.object} found (the gripper never closes on it)")
+                return ends, f"no grasp of {spec.object} found (the gripper never closes on it)"
             held = obj
         else:  # place: the gripper opens and lets go of what it held
             opens = _edges(closed, cursor, False)
             if not opens:
-                raise NoGraspError(f"{name}: the gripper never opens to place on {spec.object}")
+                return ends, f"the gripper never opens to place on {spec.object}"
             end = opens[0]
             if held is not None:
                 end = next((k for k in range(opens[0], steps) if contacts.touching(k, held) == 0), steps - 1)
         end = min(max(end, cursor + 1), steps - 1)
         ends.append(end)
         cursor = end
-    return from_boundaries([s.object for s in specs], ends[: len(specs) - 1], steps)
+    return ends, None
+
+
+# Why a failed rollout failed (teleop eval): how far it got through the task's subtasks, by the rules above.
+FAILURE_REASONS = {
+    "never_grasped": "the first grasp never happened",
+    "dropped": "grasped, then the object left the fingers without a place (the gripper never opened)",
+    "not_placed": "still holding the object at the end (never opened to place it)",
+    "not_at_rest": "every subtask done, but a task object still moving at the end",
+    "timeout": "every subtask done, objects at rest, and the task still not met in time",
+}
+AT_REST = 0.02  # m/s: a subtask's object slower than this at the end is at rest
+
+
+@dataclass(frozen=True)
+class Progress:
+    """How far a rollout got: the subtasks it completed in order ("grasp cube", "place bin"), and
+    for a failed one the reason (a FAILURE_REASONS key; None for a success)."""
+
+    reached: tuple[str, ...]
+    reason: str | None
+
+
+def progress_of(
+    model: mujoco.MjModel, states: np.ndarray, gripper: np.ndarray, arm_meta: ArmMeta,
+    specs: Sequence[SubtaskSpec], success: bool,
+) -> Progress:
+    """The subtasks reached (subtask_ends) and, unless `success`, why the rollout failed.
+
+    states: (T, nstate) per step, the last one the end state; gripper: (T,) commanded opening (1 open .. 0 closed).
+    """
+    specs = tuple(specs)
+    ends, _ = subtask_ends(model, states, gripper, arm_meta, specs) if specs and len(states) > 1 else ([], None)
+    reached = tuple(f"{s.kind} {s.object}" for s in specs[: len(ends)])
+    if success:
+        return Progress(reached, None)
+    pending = [s for s in specs[len(ends):] if s.kind != "push"]
+    if pending:
+        nxt = pending[0]
+        if nxt.kind == "grasp":
+            return Progress(reached, "never_grasped")
+        held = next((s.object for s in reversed(specs[: len(ends)]) if s.kind == "grasp"), None)
+        contacts = _Contacts(model, states, arm_meta)
+        if held is not None and contacts.touching(len(states) - 1, _object_bodies(model, held)) == 0:
+            return Progress(reached, "dropped")
+        return Progress(reached, "not_placed")
+    data = mujoco.MjData(model)
+    mujoco.mj_setState(model, data, states[-1], mujoco.mjtState.mjSTATE_INTEGRATION)
+    mujoco.mj_forward(model, data)
+    velocity = np.zeros(6)
+    for spec in specs:
+        body = min(_object_bodies(model, spec.object))
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, velocity, 0)
+        if float(np.linalg.norm(velocity[3:])) > AT_REST:
+            return Progress(reached, "not_at_rest")
+    return Progress(reached, "timeout")
 
 
 def annotate(path: str | Path, auto: bool = False, save: bool = True) -> tuple[list[Subtask], str]:

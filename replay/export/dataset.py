@@ -29,7 +29,8 @@ from pathlib import Path
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import TeleopError, first_line
 from replay.export.frames import (
-    ACTION_MODES, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, robot_layout,
+    ACTION_MODES, ENV_STATE, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, object_layout,
+    robot_layout,
 )
 from replay.export.stats import image_stats
 from replay.export.stream import EpisodeEnd, FrameStream
@@ -74,6 +75,9 @@ class ExportOptions:
     # an episode records who drove each step (a policy taken over in `teleop serve --policy`), or when
     # appending to a dataset that has it.
     intervention: bool | None = None
+    # `observation.environment_state`: the task objects' poses in the robot's base frame (frames.py). When
+    # appending, the dataset's own features decide.
+    object_state: bool = True
 
 
 @dataclass
@@ -422,7 +426,8 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         arms = robot_layout(first.meta, model)
     except (KeyError, ValueError) as exc:
         raise ExportError(f"{first.path}: robot_spec does not match the recorded model: {exc}") from None
-    spec = features(arms, opts.action, cameras, opts.image_size, opts.video)
+    objects = object_layout(first.meta, model) if wants_object_state(opts) else None
+    spec = features(arms, opts.action, cameras, opts.image_size, opts.video, objects=objects)
     if wants_intervention(opts, chosen):
         spec[INTERVENTION] = dict(INTERVENTION_FEATURE)
     try:
@@ -453,6 +458,23 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     summary.dataset_episodes = ds.meta.total_episodes
     summary.bytes = _dir_size(opts.out) if opts.out.exists() else 0
     return summary
+
+
+def _appended_features(opts: ExportOptions) -> dict | None:
+    """The features of the dataset an append goes into, or None (not appending, or no dataset yet)."""
+    info = opts.out / "meta" / "info.json"
+    if not (opts.append and info.is_file()):
+        return None
+    try:
+        return json.loads(info.read_text()).get("features") or {}
+    except (OSError, ValueError):
+        return None
+
+
+def wants_object_state(opts: ExportOptions) -> bool:
+    """Whether the export writes `observation.environment_state`: as asked, or as the dataset appended to has it."""
+    existing = _appended_features(opts)
+    return opts.object_state if existing is None else ENV_STATE in existing
 
 
 def wants_intervention(opts: ExportOptions, chosen: list[_Entry]) -> bool:
@@ -490,7 +512,7 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
     channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
     loaders = [lambda: first] + [_loader(e.path) for e in chosen[1:]]
     stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first,
-                 intervention=INTERVENTION in ds.meta.features)
+                 intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features)
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
                file=sys.stderr, dynamic_ncols=True)

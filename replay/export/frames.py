@@ -10,6 +10,10 @@ Gripper values are normalized to 1 = open .. 0 = closed, in both the state
 that one policy output fits any gripper's ctrl range; the raw range is stored
 per robot in the recording's robot_spec.
 
+Task objects (`observation.environment_state`) are each moving body that is not
+the robot's, as position (m) + quaternion wxyz in the robot's base frame (the
+first arm's root body), named `<body>.x ... <body>.qz`, in body order.
+
 Poses are position (m, world frame) + quaternion wxyz. q and -q are one
 rotation; each arm's quaternions are kept on one hemisphere along an episode
 (and commanded ones on the observed one's) so values never flip sign between
@@ -54,6 +58,34 @@ class ArmLayout:
     @property
     def gripper_name(self) -> list[str]:
         return [f"{self.prefix}gripper"] if self.gripper_id is not None else []
+
+
+# LeRobot's key for the state of the world outside the robot (ACT and Diffusion read it as an input).
+ENV_STATE = "observation.environment_state"
+
+
+@dataclass
+class ObjectLayout:
+    """The task's moving bodies (those with a joint, outside the robot) and the robot's base body."""
+
+    names: list[str]
+    body_ids: np.ndarray
+    base_id: int
+
+    @property
+    def feature_names(self) -> list[str]:
+        return [f"{n}.{p}" for n in self.names for p in POSE_NAMES]
+
+
+def object_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> ObjectLayout:
+    """The bodies whose pose is the environment state: every body with a joint of its own whose
+    root (the world's child it hangs from) holds none of the arms' joints (so no robot link, finger or
+    base). Works on any recording's embedded model, old ones included."""
+    robot_roots = {int(model.body_rootid[model.jnt_bodyid[model.joint(j).id]]) for arm in meta.arms for j in arm.joints}
+    ids = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots]
+    names = [model.body(b).name or f"body{b}" for b in ids]
+    base = min(robot_roots) if robot_roots else 0
+    return ObjectLayout(names=names, body_ids=np.asarray(ids, dtype=int), base_id=base)
 
 
 def _prefix(arm: ArmMeta, index: int, n_arms: int) -> str:
@@ -106,12 +138,13 @@ def feature_key(camera: str) -> str:
 
 def features(
     arms: list[ArmLayout], action: str, cameras: list[str], size: tuple[int, int], video: bool,
-    channel_first: bool = False,
+    channel_first: bool = False, objects: ObjectLayout | None = None,
 ) -> dict:
     """The LeRobot feature spec (dtype, shape, names) for these arms, action mode and cameras.
 
     Cameras are declared (H, W, 3) named height/width/channels, as LeRobot's own
-    recorder declares them; `channel_first` asks for (3, H, W) instead, which
+    recorder declares them; `objects` adds the environment state (ENV_STATE) when it
+    names any body. `channel_first` asks for (3, H, W) instead, which
     exports made in November 2026 declared (appending to one keeps its layout).
     LeRobot decodes both to the same (3, H, W) tensors. Channel-last is also the
     cheaper one to export: the renderer's rows go to LeRobot's encoder, its PIL
@@ -132,6 +165,9 @@ def features(
         "observation.ee_pose": {"dtype": "float32", "shape": (len(pose),), "names": pose},
         "action": {"dtype": "float32", "shape": (len(act),), "names": act},
     }
+    if objects is not None and objects.names:
+        names = objects.feature_names
+        spec[ENV_STATE] = {"dtype": "float32", "shape": (len(names),), "names": names}
     width, height = size
     for cam in cameras:
         spec[feature_key(cam)] = {
@@ -174,13 +210,33 @@ def rotation_vector(q_to: np.ndarray, q_from: np.ndarray) -> np.ndarray:
 class FrameBuilder:
     """Turns (replayed MjData at step k, recorded row k) into the non-image features.
 
-    Keeps each arm's last quaternion so orientations stay on one hemisphere.
+    Keeps each arm's (and object's) last quaternion so orientations stay on one hemisphere.
+    `objects`: also build the environment state (ENV_STATE) of these bodies.
     """
 
-    def __init__(self, arms: list[ArmLayout], action: str):
+    def __init__(self, arms: list[ArmLayout], action: str, objects: ObjectLayout | None = None):
         self.arms = arms
         self.action = action
+        self.objects = objects if objects is not None and objects.names else None
         self._last: list[np.ndarray | None] = [None] * len(arms)
+        self._last_obj: list[np.ndarray | None] = [None] * (len(self.objects.names) if self.objects else 0)
+
+    def environment_state(self, data: mujoco.MjData) -> np.ndarray:
+        """Each object's position (m) and wxyz quaternion in the robot's base frame, concatenated."""
+        objects = self.objects
+        assert objects is not None
+        base_pos, base_quat = data.xpos[objects.base_id], data.xquat[objects.base_id]
+        inv = np.array([base_quat[0], -base_quat[1], -base_quat[2], -base_quat[3]])
+        out = np.empty(7 * len(objects.names))
+        pos, quat = np.empty(3), np.empty(4)
+        for i, body in enumerate(objects.body_ids):
+            mujoco.mju_rotVecQuat(pos, data.xpos[body] - base_pos, inv)
+            mujoco.mju_mulQuat(quat, inv, data.xquat[body])
+            quat = _same_hemisphere(quat, self._last_obj[i])
+            self._last_obj[i] = quat.copy()
+            out[7 * i : 7 * i + 3] = pos
+            out[7 * i + 3 : 7 * i + 7] = quat
+        return out
 
     def __call__(self, data: mujoco.MjData, ctrl: np.ndarray, ee_target: np.ndarray) -> dict[str, np.ndarray]:
         state, pose, act = [], [], []
@@ -202,8 +258,11 @@ class FrameBuilder:
                     act += [*t_pos, *t_quat, *grip_act]
                 else:
                     act += [*(t_pos - pos), *rotation_vector(t_quat, q_obs), *grip_act]
-        return {
+        frame = {
             "observation.state": np.asarray(state, dtype=np.float32),
             "observation.ee_pose": np.asarray(pose, dtype=np.float32),
             "action": np.asarray(act, dtype=np.float32),
         }
+        if self.objects is not None:
+            frame[ENV_STATE] = self.environment_state(data).astype(np.float32)
+        return frame

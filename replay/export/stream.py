@@ -28,7 +28,7 @@ import mujoco
 
 from replay.engine import replay_states
 from replay.episode import Episode
-from replay.export.frames import INTERVENTION, FrameBuilder, intervention_values, robot_layout
+from replay.export.frames import INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
 from replay.render import FastRenderer
 
 QUEUE_BYTES = 64 << 20  # frames waiting for LeRobot, at most (~200 frames of two 224x224 cameras)
@@ -50,6 +50,7 @@ class _Job:
     keys: list[str]  # dataset key of each camera
     channel_first: list[bool]  # per camera, as the dataset declares it
     intervention: bool = False  # add the per-frame `intervention` feature
+    objects: bool = False  # add the environment state (the task objects' poses)
 
 
 _DONE = object()
@@ -177,9 +178,10 @@ class FrameStream:
         keys: Sequence[str],
         channel_first: Sequence[bool],
         intervention: bool = False,
+        objects: bool = False,
     ) -> None:
         """Begin producing: each callable loads one episode, in export order."""
-        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention)
+        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects)
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -248,7 +250,8 @@ class FrameStream:
                 renderer.load(model)  # seeds move objects: each episode has its own model
             if worker is not None:
                 worker.episode(ep, model, job.channel_first[own:])
-            build = FrameBuilder(robot_layout(ep.meta, model), job.action)
+            build = FrameBuilder(robot_layout(ep.meta, model), job.action,
+                                 object_layout(ep.meta, model) if job.objects else None)
             task = job.task(ep)
             driven = intervention_values(ep.control, ep.meta.source, ep.steps) if job.intervention else None
             for k, data in replay_states(ep, model):

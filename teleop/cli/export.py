@@ -42,6 +42,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="video codec: h264 (default: fast to encode and to decode in training), av1 (LeRobot's "
         "default, smallest files, ~4x slower to encode), hevc. With --append: the dataset's own codec",
     )
+    p.add_argument(
+        "--no-object-state", action="store_true",
+        help="leave out observation.environment_state (each task object's position and wxyz quaternion in the "
+        "robot's base frame, written by default). With --append: the dataset's own features decide",
+    )
     p.add_argument("--append", action="store_true", help="add the episodes to the existing dataset at --out")
     p.add_argument(
         "--workers", default="1", metavar="K",
@@ -96,6 +101,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             progress=sys.stderr.isatty(),
             workers=_workers(args.workers),
             ray=args.ray,
+            object_state=not args.no_object_state,
         )
         summary = export_dataset(args.paths, opts)
     except ExportError as exc:

@@ -9,6 +9,11 @@ at 0 % and 100 % and for few episodes, unlike the normal approximation).
 With `record`, every rollout is recorded by the session's `Recorder` as a normal
 episode file (`source: "policy"`, `policy`: the policy's path), which replays
 bit-exact and opens in `teleop replay --serve` like any other.
+
+Every episode also says how far it got (`reached`: the task's subtasks completed in
+order, by `teleop annotate`'s rules) and, when it failed, why (`failure`: never
+grasped, dropped, not placed, not at rest, timeout; replay/annotate.py), counted
+over the run in `failure_breakdown`.
 """
 
 from __future__ import annotations
@@ -24,13 +29,16 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+import numpy as np
+
+from replay.annotate import FAILURE_REASONS, progress_of
 from replay.export.frames import feature_key
 from scenes import RobotSpec
 from scenes.errors import TeleopError
 from teleop.gym import make_env
 from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
 from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
-from teleop.control.recording import Recorder
+from teleop.control.recording import Recorder, arm_metas
 
 Z95 = 1.959963984540054  # standard normal quantile for a two-sided 95 % interval
 DEFAULT_SEED = 1000  # past the seeds that recording and generation start from (0, 1, ...)
@@ -84,6 +92,8 @@ class EpisodeOutcome:
     wall_seconds: float
     file: str | None = None  # the recorded episode's first file
     replay_bit_exact: bool | None = None  # the recorder's check of it (None: not recorded or not checked)
+    reached: list[str] = field(default_factory=list)  # subtasks completed in order, e.g. ["grasp cube"]
+    failure: str | None = None  # why it failed (a replay.annotate.FAILURE_REASONS key); None: success
 
 
 @dataclass
@@ -125,6 +135,15 @@ class EvalSummary:
         return sum(times) / len(times) if times else None
 
     @property
+    def failure_breakdown(self) -> dict[str, int]:
+        """Failed episodes counted by reason, in FAILURE_REASONS order (reasons with none left out)."""
+        counts = {reason: 0 for reason in FAILURE_REASONS}
+        for e in self.per_episode:
+            if e.failure is not None:
+                counts[e.failure] = counts.get(e.failure, 0) + 1
+        return {k: v for k, v in counts.items() if v}
+
+    @property
     def steps_per_s(self) -> float:
         return self.steps / self.step_seconds if self.step_seconds > 0 else 0.0
 
@@ -144,6 +163,7 @@ class EvalSummary:
             "success_rate": round(self.success_rate, 6),
             "ci95": [round(v, 6) for v in self.ci95],
             "mean_seconds_to_success": None if mean is None else round(mean, 6),
+            "failure_breakdown": self.failure_breakdown,
             "per_episode": [asdict(e) for e in self.per_episode],
             "steps": self.steps,
             "steps_per_s": round(self.steps_per_s, 3),
@@ -164,12 +184,15 @@ class EvalSummary:
             "mean time to success: " + (f"{mean:.2f} s" if mean is not None else "- (no successes)"),
         ]
         for e in self.per_episode:
-            what = f"success in {e.seconds_to_success:.2f} s" if e.success else f"failed ({e.seconds:.2f} s)"
+            got = f", reached: {', '.join(e.reached)}" if e.reached else ""
+            what = f"success in {e.seconds_to_success:.2f} s" if e.success else f"failed: {e.failure} ({e.seconds:.2f} s{got})"
             out.append(f"  seed {e.seed}: {what}" + (f"  {e.file}" if e.file else ""))
         if self.record is not None:
             checked = [e.replay_bit_exact for e in self.per_episode if e.file]
             exact = sum(bool(c) for c in checked)
             out.append(f"recorded {len(checked)} rollouts in {self.record} ({exact} checked bit-exact)")
+        if self.failure_breakdown:
+            out.append("failures: " + ", ".join(f"{k} {v}" for k, v in self.failure_breakdown.items()))
         out.append(f"{self.steps} steps at {self.steps_per_s:.1f} steps/s in {self.wall_seconds:.1f} s")
         return out
 
@@ -214,6 +237,20 @@ def _check(opts: EvalOptions) -> None:
         raise EvalError(f"seed must be a whole number >= 0, got {opts.seed!r}")
 
 
+def _gripper_open(env: TeleopEnv) -> float:
+    """The first arm's commanded gripper, as recorded: 1.0 open, 0.0 closed."""
+    arms = env.unwrapped.session.controller.arms
+    return 1.0 if arms and arms[0].gripper_open else 0.0
+
+
+def _progress_of(env: TeleopEnv, states: list[np.ndarray], gripper: list[float], success: bool):
+    """How far the rollout got through the task's subtasks, and why it failed (replay/annotate.py)."""
+    session = env.unwrapped.session
+    specs = session.scene.task.subtasks
+    arm = arm_metas(session.controller)[0]
+    return progress_of(session.model, np.asarray(states), np.asarray(gripper), arm, specs, success)
+
+
 def run_rollout(env: TeleopEnv, policy: Policy, seed: int, recorder: Recorder | None) -> EpisodeOutcome:
     """One episode of `policy` from the scene of `seed`, recorded when a recorder is given."""
     t0 = time.perf_counter()
@@ -223,16 +260,21 @@ def run_rollout(env: TeleopEnv, policy: Policy, seed: int, recorder: Recorder | 
         recorder.start()
     steps = 0
     success = bool(info["is_success"])
+    states, gripper = [env.get_state()], [_gripper_open(env)]
     while not success:
         obs, _, terminated, truncated, info = env.step(policy.select_action(obs))
         steps += 1
+        states.append(env.get_state())
+        gripper.append(_gripper_open(env))
         success = bool(info["is_success"])
         if terminated or truncated:
             break
+    wall = time.perf_counter() - t0
     seconds = float(info["time"])
+    progress = _progress_of(env, states, gripper, success)
     outcome = EpisodeOutcome(seed=seed, success=success, steps=steps, seconds=round(seconds, 6),
                              seconds_to_success=round(seconds, 6) if success else None,
-                             wall_seconds=round(time.perf_counter() - t0, 6))
+                             wall_seconds=round(wall, 6), reached=list(progress.reached), failure=progress.reason)
     if recorder is not None:
         files = recorder.save(complete=True)
         if files:

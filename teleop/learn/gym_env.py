@@ -35,7 +35,7 @@ import numpy as np
 from devices.command import Command
 from recorder.format import EpisodeMeta
 from replay.export.dataset import DEFAULT_CAMERAS, ExportError, resolve_cameras, parse_cameras
-from replay.export.frames import ACTION_MODES, ArmLayout, FrameBuilder, feature_key, robot_layout
+from replay.export.frames import ACTION_MODES, ENV_STATE, ArmLayout, FrameBuilder, ObjectLayout, feature_key, object_layout, robot_layout
 from replay.render import FastRenderer
 from scenes import RobotSpec
 from teleop.errors import EnvError
@@ -78,6 +78,8 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
     cameras: names to observe (None: front and wrist where the scene has them, as
     the export; "wrist" means every arm's wrist camera); () observes no images.
     image_size: (width, height) in pixels. action: "joint", "ee_pose" or "ee_delta".
+    object_state: observe `observation.environment_state` (each task object's position, m,
+    and wxyz quaternion in the robot's base frame), as the export writes it by default.
     seed: the scene seed of the first reset without one; reset(seed=s) builds
     the scene for seed s, a reset without a seed the next seed.
     """
@@ -97,6 +99,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         seed: int = 0,
         render_mode: str | None = None,
         session: Session | None = None,
+        object_state: bool = True,
     ) -> None:
         _check_options(action, max_seconds, seed, render_mode)
         self.image_size = _image_size(image_size)
@@ -104,6 +107,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         # building one; scene, robot, control_hz and seed are then the session's.
         self.session = session if session is not None else Session(scene, robot, int(seed), control_hz)
         self.action_mode = action
+        self.object_state = bool(object_state)
         self.render_mode = render_mode
         self.metadata = {**TeleopEnv.metadata, "render_fps": self.session.control_hz}
         self.max_steps = max(1, math.ceil(max_seconds * self.session.control_hz - 1e-9))
@@ -120,7 +124,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         self._renderer: FastRenderer | None = None
         self._load()
         self.features, self.observation_space, self.action_space = make_spaces(
-            self.session.controller, self.arms, action, self.cameras, self.image_size
+            self.session.controller, self.arms, action, self.cameras, self.image_size, self.objects
         )
         self._steps = 0
         self._last_obs: Observation | None = None
@@ -145,8 +149,9 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
             control_hz=controller.control_hz, timestep=controller.timestep, substeps=controller.substeps,
         )
         self.arms: list[ArmLayout] = robot_layout(meta, self.model)
+        self.objects: ObjectLayout | None = object_layout(meta, self.model) if self.object_state else None
         self._loaded_model = self.model
-        self._frames = FrameBuilder(self.arms, self.action_mode)  # new per episode: quaternion signs start afresh
+        self._frames = FrameBuilder(self.arms, self.action_mode, self.objects)  # new per episode: quaternion signs start afresh
         self._scratch = mujoco.MjData(self.model)
         self._state = np.empty(controller.nstate)
         if self._renderer is not None:
@@ -197,6 +202,8 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         targets = np.array([np.concatenate(self.session.target_pose(i)) for i in range(len(self.arms))])
         frame = self._frames(self._scratch, self._scratch.ctrl, targets)
         obs = {"observation.state": frame["observation.state"], "observation.ee_pose": frame["observation.ee_pose"]}
+        if ENV_STATE in frame:
+            obs[ENV_STATE] = frame[ENV_STATE]
         renderer = self._renderer_for_images()
         for c, cam in enumerate(self.cameras):
             obs[feature_key(cam)] = renderer.render(self._scratch, c)

@@ -12,6 +12,8 @@ entry can go, in its own units:
   EE position      m, world frame: a box around the arm's base
   quaternion wxyz  [-1, 1] each
   EE delta         m per tick and rad (rotation vector), world frame
+  object poses     m and wxyz in the robot's base frame: within OBJECT_RANGE of the base
+                   (an object knocked to the floor stays inside), quaternions [-1, 1]
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from replay.export.frames import ArmLayout, feature_key, features
+from replay.export.frames import ENV_STATE, ArmLayout, ObjectLayout, feature_key, features
 from scenes.arena import TABLE_TOP
 from teleop.control.controller import Controller
 
@@ -31,6 +33,7 @@ UNLIMITED_TARGET = 2 * math.pi  # rad: joint-target bound of a joint without a r
 EE_DELTA_POS = 0.2  # m: bound of an ee_delta translation (target minus actual EE position)
 GRIPPER_STATE_FALLBACK = (-1.0, 2.0)  # fingers with no known travel: generous, on the open..closed scale
 QUAT = ([-1.0] * 4, [1.0] * 4)
+OBJECT_RANGE = 10.0  # m: how far from the robot's base an object's position may be observed
 
 
 def _joint_range(model: mujoco.MjModel, joint: str) -> tuple[float, float] | None:
@@ -117,18 +120,22 @@ def action_box(mode: str, controller: Controller, arms: list[ArmLayout]) -> spac
 
 
 def make_spaces(
-    controller: Controller, arms: list[ArmLayout], mode: str, cameras: list[str], size: tuple[int, int]
+    controller: Controller, arms: list[ArmLayout], mode: str, cameras: list[str], size: tuple[int, int],
+    objects: ObjectLayout | None = None,
 ) -> tuple[dict, spaces.Dict, spaces.Box]:
     """(the export's feature spec, observation space, action space) for these arms and options.
 
     Shapes and names come from the export's `features` (images declared (H, W, 3),
     as an image export stores them), so the two cannot drift apart.
     """
-    spec = features(arms, mode, cameras, size, video=False, channel_first=False)
+    spec = features(arms, mode, cameras, size, video=False, channel_first=False, objects=objects)
     obs: dict[str, spaces.Space] = {
         "observation.state": state_box(controller.model, arms),
         "observation.ee_pose": ee_pose_box(controller, action=False),
     }
+    if ENV_STATE in spec:
+        n = len(objects.names)
+        obs[ENV_STATE] = _box(([-OBJECT_RANGE] * 3 + QUAT[0]) * n, ([OBJECT_RANGE] * 3 + QUAT[1]) * n)
     for cam in cameras:
         key = feature_key(cam)
         obs[key] = spaces.Box(0, 255, tuple(spec[key]["shape"]), dtype=np.uint8)
