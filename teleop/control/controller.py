@@ -34,18 +34,27 @@ def physics_split(control_hz: float) -> tuple[int, float]:
     return substeps, period / substeps
 
 
+def norm(v: np.ndarray) -> float:
+    """Euclidean norm of a float vector, bit for bit np.linalg.norm's (sqrt of v.v) without its overhead."""
+    return math.sqrt(v.dot(v))
+
+
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of two wxyz quaternions."""
     out = np.empty(4)
-    mujoco.mju_mulQuat(out, np.asarray(a, float), np.asarray(b, float))
+    mujoco.mju_mulQuat(out, a, b)
     return out
 
 
+IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
+IDENTITY_QUAT.setflags(write=False)
+
+
 def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
-    """wxyz quaternion of an axis-angle vector (radians)."""
-    angle = float(np.linalg.norm(rotvec))
+    """wxyz quaternion of an axis-angle vector (radians); read-only when it is the identity."""
+    angle = norm(rotvec)
     if angle < 1e-12:
-        return np.array([1.0, 0.0, 0.0, 0.0])
+        return IDENTITY_QUAT
     out = np.empty(4)
     mujoco.mju_axisAngle2Quat(out, np.asarray(rotvec, float) / angle, angle)
     return out
@@ -172,12 +181,16 @@ class Controller:
         """Keep a target inside what the arm can reach and above the table."""
         base = self.base_pos[arm]
         out = pos.copy()
-        out[2] = min(max(out[2], TABLE_TOP + 0.005), base[2] + self.reach)
+        z = float(out[2])
+        out[2] = min(max(z, TABLE_TOP + 0.005), base[2] + self.reach)
+        changed = out[2] != z
         offset = out - base
-        dist = float(np.linalg.norm(offset))
+        dist = norm(offset)
         if dist > self.reach:
             out = base + offset * (self.reach / dist)
-        if not np.allclose(out, pos):
+            changed = True
+        # np.allclose(out, pos) (finite numbers), only when something was moved: it runs every tick
+        if changed and not (np.abs(out - pos) <= 1e-8 + 1e-5 * np.abs(pos)).all():
             self.stats.clamped += 1
         return out
 
@@ -187,11 +200,9 @@ class Controller:
             self.stats.ignored_commands += 1
             return
         arm = self.arms[command.arm]
-        pos, quat = arm.target_pos.copy(), arm.target_quat.copy()
-        if command.target_pos is not None:
-            pos = np.asarray(command.target_pos, dtype=float)
-        if command.target_quat is not None:
-            quat = np.asarray(command.target_quat, dtype=float)
+        # Read, never written in place below: every step makes a new array.
+        pos = arm.target_pos if command.target_pos is None else np.asarray(command.target_pos, dtype=float)
+        quat = arm.target_quat if command.target_quat is None else np.asarray(command.target_quat, dtype=float)
         translation = np.asarray(command.translation, dtype=float)
         rotation = np.asarray(command.rotation, dtype=float)
         if command.frame == "ee":
@@ -202,12 +213,13 @@ class Controller:
         else:
             quat = quat_mul(axis_angle_quat(rotation), quat)
         pos = pos + translation
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0):
+        size = norm(quat)
+        if not (np.isfinite(pos).all() and np.isfinite(quat).all() and size > 0):
             self.stats.ignored_commands += 1
             self.note(f"ignored a non-finite target from {command.source or 'a device'}")
             return
         arm.target_pos = self.clamp_target(command.arm, pos)
-        arm.target_quat = quat / np.linalg.norm(quat)
+        arm.target_quat = quat / size
         if command.gripper == "open":
             arm.gripper_open = True
         elif command.gripper == "close":
@@ -265,7 +277,8 @@ class Controller:
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
 
-        errors = np.array([np.linalg.norm(self.data.site_xpos[a.site_id] - a.target_pos) for a in self.arms])
+        site_xpos = self.data.site_xpos
+        errors = np.array([norm(site_xpos[a.site_id] - a.target_pos) for a in self.arms])
         self.tracking_errors.append(errors)
         self.steps += 1
         if observer is not None:
