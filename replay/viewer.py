@@ -153,10 +153,10 @@ class EpisodeViewer:
         self._stop.set()
 
 
-def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -> int:
-    """Serve `episode` on host:port until Ctrl-C; returns the exit code (2 for a user error)."""
-    import signal
-
+def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080,
+                  stop: threading.Event | None = None) -> int:
+    """Serve `episode` on host:port until Ctrl-C (a KeyboardInterrupt) or `stop` is set (the CLI's
+    token, set on Ctrl-C and SIGTERM); returns the exit code (2 for a user error)."""
     import viser
 
     try:
@@ -182,8 +182,8 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -
         print(f"warning: listening on {host}:{port}: anyone who can reach this port can see this episode", file=sys.stderr)
     shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
     print(f"open http://{shown}:{port} in a browser to view {episode.path.name} (Ctrl-C to stop)", flush=True)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _interrupt)
+    if stop is not None:  # the token ends the play loop
+        threading.Thread(target=lambda: (stop.wait(), viewer.stop()), name="viewer-stop", daemon=True).start()
     try:
         viewer.run()
     except KeyboardInterrupt:
@@ -192,7 +192,3 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080) -
         viewer.stop()
         server.stop()
     return 0
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt

@@ -3,6 +3,11 @@
 scenes/ imports none of our folders; devices/ and recorder/ at most scenes/;
 replay/ at most recorder/ and scenes/; teleop/ may import all. An import inside
 a function counts like any other: hiding one there does not get around the rule.
+Inside teleop/ the parts have layers of their own (TELEOP_ALLOWED); no module
+imports itself back at module level (TYPE_CHECKING imports count); and no module
+takes another's private (`_name`) names. Kept on purpose (issue 19): one error
+root, and one loop (`run_episode`) around Session.step. Each check has a self-test
+that shows it can fail.
 """
 
 from __future__ import annotations
@@ -25,20 +30,7 @@ OURS = set(ALLOWED) | {"bench", "tests"}
 
 def imported_modules(path: Path) -> list[tuple[int, str, bool]]:
     """(line, module, inside a function) for every absolute import in a file."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    found: list[tuple[int, str, bool]] = []
-
-    def visit(node: ast.AST, in_function: bool) -> None:
-        for child in ast.iter_child_nodes(node):
-            nested = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
-            if isinstance(child, ast.Import):
-                found.extend((child.lineno, alias.name, in_function) for alias in child.names)
-            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
-                found.append((child.lineno, child.module, in_function))
-            visit(child, nested)
-
-    visit(tree, False)
-    return found
+    return [(line, module, in_function) for line, module, _, in_function in imports_with_names(path)]
 
 
 def edges() -> list[tuple[str, int, str, str, bool]]:
@@ -74,6 +66,283 @@ def test_the_library_layers_import_none_of_ours_lazily():
         if in_function and pkg != "teleop" and module.split(".")[0] in OURS and module.split(".")[0] != pkg
     ]
     assert not lazy, "\n".join(lazy)
+
+
+# -- inside teleop/: the app's own layers ------------------------------------------
+# A part of teleop/ is a sub-package (control, generate, learn, web, cli) or a top module
+# (errors, gym: the public `teleop.gym`, __init__: the public `import teleop`, __main__).
+# The data flows control -> generate / learn -> web -> cli: a part imports only the parts
+# its row names, and only cli/ (the commands) imports every part.
+TELEOP_PARTS = ("errors", "control", "generate", "learn", "web", "gym", "__init__", "cli", "__main__")
+TELEOP_ALLOWED: dict[str, set[str]] = {
+    "errors": set(),                                 # the teleop errors, on scenes.errors' root
+    "control": {"errors"},                           # controller, IK, session, loop, recording
+    "generate": {"errors", "control"},               # scripted demonstrations at scale
+    "learn": {"errors", "control"},                  # policy, evaluate, Gymnasium env, takeover
+    "web": {"errors", "control", "learn"},           # the browser session (a policy may drive it)
+    "gym": {"learn"},                                # `teleop.gym`: registers learn/'s environment
+    "__init__": {"errors", "control", "web"},        # `import teleop`: the scripting API
+    "cli": set(TELEOP_PARTS) - {"cli", "__main__"},  # the commands: every part
+    "__main__": {"cli"},                             # `python -m teleop`
+}
+
+
+def module_name(root: Path, path: Path) -> str:
+    """`teleop/control/session.py` -> `teleop.control.session`; a package's `__init__.py` -> the package."""
+    parts = path.relative_to(root).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports_with_names(path: Path) -> list[tuple[int, str, tuple[str, ...], bool]]:
+    """(line, module, names a `from` import takes, inside a function) for every absolute import.
+
+    An import under `if TYPE_CHECKING:` is at module level here: the annotations it serves
+    tie the two modules together all the same.
+    """
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found: list[tuple[int, str, tuple[str, ...], bool]] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            nested = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, ast.Import):
+                found.extend((child.lineno, alias.name, (), in_function) for alias in child.names)
+            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
+                found.append((child.lineno, child.module, tuple(a.name for a in child.names), in_function))
+            visit(child, nested)
+
+    visit(tree, False)
+    return found
+
+
+def module_graph(root: Path, packages, module_level_only: bool) -> dict[str, dict[str, str]]:
+    """module -> {module of ours it imports: "path:line"}. `from pkg import mod` names the module
+    pkg.mod; importing a.b.c is not counted as importing its parents a and a.b (Python runs them
+    first, but a package that re-exports its modules would otherwise sit in a cycle with each)."""
+    files = {module_name(root, p): p for package in packages for p in sorted((root / package).rglob("*.py"))}
+
+    def ours(name: str) -> str | None:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, dict[str, str]] = {}
+    for module, path in files.items():
+        targets = graph.setdefault(module, {})
+        for line, imported, names, in_function in imports_with_names(path):
+            if in_function and module_level_only:
+                continue
+            for target in [f"{imported}.{n}" if f"{imported}.{n}" in files else imported for n in names] or [imported]:
+                if (found := ours(target)) is not None and found != module:
+                    targets.setdefault(found, f"{path.relative_to(root)}:{line}")
+    return graph
+
+
+def teleop_part(module: str) -> str:
+    """teleop.control.session -> control; teleop.gym -> gym; teleop -> __init__."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def teleop_layer_violations(root: Path) -> list[str]:
+    """Every import (inside functions too) from one part of teleop/ into a part its row does not allow."""
+    graph = module_graph(root, ["teleop"], module_level_only=False)
+    return [
+        f"{where}: teleop/{teleop_part(module)} imports {target}"
+        for module, targets in graph.items()
+        for target, where in targets.items()
+        if target.split(".")[0] == "teleop" and (a := teleop_part(module)) != (b := teleop_part(target))
+        and b not in TELEOP_ALLOWED.get(a, set())
+    ]
+
+
+def test_the_teleop_table_names_every_part():
+    found = {teleop_part(module_name(ROOT, p)) for p in (ROOT / "teleop").rglob("*.py")}
+    assert found == set(TELEOP_ALLOWED) == set(TELEOP_PARTS), "add the new part of teleop/ to TELEOP_ALLOWED"
+
+
+def test_the_teleop_layer_check_can_fail(tmp_path):
+    for name, text in {"__init__.py": "", "control/__init__.py": "", "control/session.py": "from teleop.errors import E\n",
+                       "control/tick.py": "def f():\n    from teleop.cli import entry\n",
+                       "cli/__init__.py": "", "cli/entry.py": "from teleop.control import session\n", "errors.py": ""}.items():
+        (tmp_path / "teleop" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "teleop" / name).write_text(text)
+    assert teleop_layer_violations(tmp_path) == ["teleop/control/tick.py:2: teleop/control imports teleop.cli.entry"]
+
+
+def test_the_parts_of_teleop_follow_their_layers():
+    bad = teleop_layer_violations(ROOT)
+    rows = "\n".join(f"  {part}/ may import {sorted(allowed) or 'no other part'}" for part, allowed in TELEOP_ALLOWED.items())
+    assert not bad, "\n".join(bad) + "\nthe layers inside teleop/:\n" + rows
+
+
+# -- no import cycles ---------------------------------------------------------------
+
+
+def find_cycle(graph: dict[str, dict[str, str]]) -> list[str]:
+    """One cycle in the graph as [a, b, ..., a] (a depth-first search), or [] if it has none."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, {})):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state and (cycle := visit(nxt)):
+                return cycle
+        path.pop()
+        state[node] = 2
+        return []
+
+    for start in sorted(graph):
+        if start not in state and (cycle := visit(start)):
+            return cycle
+    return []
+
+
+def test_the_cycle_finder_finds_one_under_type_checking(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "a.py").write_text("from pkg.b import B\n")
+    (tmp_path / "pkg" / "b.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg import a\n")
+    (tmp_path / "pkg" / "c.py").write_text("def f():\n    from pkg import a\n")  # inside a function: not a cycle
+    graph = module_graph(tmp_path, ["pkg"], module_level_only=True)
+    assert find_cycle(graph) == ["pkg.a", "pkg.b", "pkg.a"]
+    del graph["pkg.b"]["pkg.a"]
+    assert find_cycle(graph) == []
+
+
+def test_no_import_cycles():
+    """At module level (TYPE_CHECKING imports included), no module of ours comes back to itself."""
+    graph = module_graph(ROOT, sorted(ALLOWED), module_level_only=True)
+    cycle = find_cycle(graph)
+    steps = [f"  {a} -> {b}   ({graph[a][b]})" for a, b in zip(cycle, cycle[1:])]
+    assert not cycle, "an import cycle:\n" + "\n".join(steps)
+
+
+# -- no private names across modules -----------------------------------------------
+
+
+def private_names_taken(root: Path, packages) -> list[str]:
+    """`from mod import _name` and `mod._name`, where mod is one of our modules other than the file's own.
+
+    A `_name` used by another module is an interface: it gets a public name, or the code moves.
+    """
+    files = {module_name(root, p): p for package in packages for p in sorted((root / package).rglob("*.py"))}
+    ours = {m.split(".")[0] for m in files} | set(ALLOWED)
+
+    def private(name: str) -> bool:
+        return name.startswith("_") and not name.startswith("__")
+
+    found = []
+    for module, path in files.items():
+        where = path.relative_to(root)
+        tree = ast.parse(path.read_text(), filename=str(path))
+        bound: dict[str, str] = {}  # a local name -> the module of ours it is
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.split(".")[0] in ours:
+                        bound[a.asname or a.name.split(".")[0]] = a.name if a.asname else a.name.split(".")[0]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and node.module.split(".")[0] in ours:
+                for a in node.names:
+                    if f"{node.module}.{a.name}" in files:
+                        bound[a.asname or a.name] = f"{node.module}.{a.name}"
+                    elif private(a.name) and node.module != module:
+                        found.append(f"{where}:{node.lineno}: from {node.module} import {a.name}")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and private(node.attr):
+                chain, value = [], node.value
+                while isinstance(value, ast.Attribute):
+                    chain.insert(0, value.attr)
+                    value = value.value
+                if isinstance(value, ast.Name) and value.id in bound:
+                    target = ".".join([bound[value.id], *chain])
+                    if target != module:
+                        found.append(f"{where}:{node.lineno}: {value.id}{''.join('.' + c for c in chain)}.{node.attr}")
+    return found
+
+
+def test_the_private_name_check_can_fail(tmp_path):
+    (tmp_path / "replay").mkdir()
+    (tmp_path / "replay" / "__init__.py").write_text("")
+    (tmp_path / "replay" / "a.py").write_text("def _helper(): ...\n\n\ndef public(): return _helper()\n")
+    (tmp_path / "replay" / "b.py").write_text("from replay.a import __doc__, _helper\nimport replay.a as a\n\na._helper()\na.public()\n")
+    assert private_names_taken(tmp_path, ["replay"]) == [
+        "replay/b.py:1: from replay.a import _helper", "replay/b.py:4: a._helper"]
+
+
+def test_no_private_names_taken_across_modules():
+    """tests/ and bench/ too: what a test needs of a module is its interface (monkeypatch by string if you must)."""
+    found = private_names_taken(ROOT, sorted(OURS))
+    assert not found, "a private name used by another module: make it public or move the code:\n" + "\n".join(found)
+
+
+# -- what is kept (issue 19, item 8): one error root, one loop ---------------------
+
+
+def errors_off_the_root(root: Path, packages) -> list[str]:
+    """Classes named `...Error` whose bases (followed by name through our files) never reach TeleopError."""
+    bases: dict[str, list[str]] = {}
+    where: dict[str, str] = {}
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+                if isinstance(node, ast.ClassDef):
+                    bases[node.name] = [ast.unparse(b).rpartition(".")[2] for b in node.bases]
+                    where[node.name] = f"{path.relative_to(root)}:{node.lineno}"
+
+    def rooted(name: str, seen: frozenset = frozenset()) -> bool:
+        return name == "TeleopError" or any(rooted(b, seen | {name}) for b in bases.get(name, []) if b not in seen)
+
+    return [f"{where[name]}: {name}({', '.join(bases[name])})" for name in bases
+            if name.endswith("Error") and not rooted(name)]
+
+
+def test_the_error_root_check_can_fail(tmp_path):
+    (tmp_path / "replay").mkdir()
+    (tmp_path / "replay" / "a.py").write_text("from scenes.errors import TeleopError\n\nclass EpisodeError(TeleopError): ...\n"
+                                              "class CutShortError(EpisodeError): ...\nclass LostError(RuntimeError): ...\n")
+    assert errors_off_the_root(tmp_path, ["replay"]) == ["replay/a.py:5: LostError(RuntimeError)"]
+
+
+def test_every_error_a_user_can_cause_has_the_one_root():
+    """One error root with one-line messages: the CLI prints any TeleopError as a line and exits 2."""
+    found = errors_off_the_root(ROOT, sorted(ALLOWED))
+    assert not found, "derive these from scenes.errors.TeleopError (or a subclass):\n" + "\n".join(found)
+
+
+def loops_that_step_a_session(path: Path) -> list[int]:
+    """Lines of `for` / `while` loops whose body calls `<...session>.step(...)`."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, (ast.For, ast.While)) and any(
+            isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr == "step"
+            and ast.unparse(call.func.value).endswith("session")
+            for statement in node.body for call in ast.walk(statement)
+        ):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_the_session_loop_check_can_fail(tmp_path):
+    sample = tmp_path / "sample.py"
+    sample.write_text("def f(self, session):\n    session.step([])\n    while True:\n        self.session.step([])\n"
+                      "    for env in envs:\n        env.step(0)\n")
+    assert loops_that_step_a_session(sample) == [3]
+
+
+def test_every_loop_is_run_episode():
+    """The CLI, the browser session and generation all tick through teleop.control.loop.run_episode."""
+    found = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for path in sorted((ROOT / "teleop").rglob("*.py"))
+        if path != ROOT / "teleop" / "control" / "loop.py"
+        for line in loops_that_step_a_session(path)
+    ]
+    assert not found, "a loop of its own around Session.step: use teleop.control.loop.run_episode:\n" + "\n".join(found)
 
 
 def test_episode_metadata_keys_are_read_only_in_the_format_module():
@@ -112,3 +381,30 @@ def test_every_device_speaks_the_one_protocol(tmp_path):
         if "hasattr(d" in line or "hasattr(device" in line
     ]
     assert not hasattr_checks
+
+
+def signal_handler_calls(path: Path) -> list[int]:
+    """Lines that install a signal handler: `signal.signal(...)`, or `signal` imported from the signal module."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "signal" \
+                and isinstance(node.func.value, ast.Name) and node.func.value.id == "signal":
+            lines.append(node.lineno)
+        elif isinstance(node, ast.ImportFrom) and node.module == "signal" and any(a.name == "signal" for a in node.names):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_only_the_command_line_installs_signal_handlers(tmp_path):
+    """Issue 19: library code takes a cancellation token or lets KeyboardInterrupt through; handlers are teleop/cli/'s."""
+    sample = tmp_path / "sample.py"
+    sample.write_text("import signal\nfrom signal import signal as s\n\ndef f():\n    signal.signal(2, None)\n")
+    assert signal_handler_calls(sample) == [2, 5]
+    found = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for package in ALLOWED
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if path.relative_to(ROOT).parts[:2] != ("teleop", "cli")
+        for line in signal_handler_calls(path)
+    ]
+    assert not found, "only teleop/cli/ installs signal handlers (teleop/cli/signals.py):\n" + "\n".join(found)

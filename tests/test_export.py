@@ -453,3 +453,23 @@ def test_ctrl_c_keeps_the_saved_episodes(recorded, tmp_path):
     ds = _open(out, "t/int")
     assert ds.num_episodes == 1 and ds.num_frames == load_episode(recorded["files"][0]).steps
     assert ds[ds.num_frames - 1]["observation.images.front"].std() > 0.05
+
+
+def test_a_cancel_token_stops_the_export_keeping_the_saved_episodes(recorded, tmp_path):
+    """How `teleop export` takes Ctrl-C (teleop/cli/signals.py sets the token): the export ends at the next
+    frame after it is set, the saved episode is finalized and loads."""
+    import threading
+
+    token = threading.Event()
+
+    def cancel_after_the_first(episodes: int, frames: int) -> None:
+        if episodes == 1:
+            token.set()
+
+    out = tmp_path / "ds"
+    summary = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="t/cancel", cameras=["front"],
+                                                               image_size=(32, 32), progress=False,
+                                                               on_episode=cancel_after_the_first), cancel=token)
+    assert summary.interrupted and summary.episodes == 1 and summary.dataset_episodes == 1
+    ds = _open(out, "t/cancel")
+    assert ds.num_episodes == 1 and ds.num_frames == load_episode(recorded["files"][0]).steps

@@ -229,3 +229,57 @@ def test_ctrl_c_keeps_what_was_generated(sources, tmp_path):
     for path in kept:
         ep = teleop.load_episode(path)
         assert ep.meta.complete and ep.meta.success and not ep.truncated
+
+
+def _children(pid: int) -> dict[int, str]:
+    """The processes whose parent is `pid`, as {pid: start time} read from /proc (start time: against pid reuse)."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found[int(entry.name)] = fields[19]
+    return found
+
+
+def _alive(pid: int, started: str) -> bool:
+    """Still running: the same process (same start time) and not a zombie waiting to be reaped."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[19] == started and fields[0] != "Z"
+
+
+def test_kill_9_leaves_no_orphans(sources, tmp_path):
+    """Issue 24: `teleop generate --workers 2` killed by SIGKILL mid-run: within 5 s none of its children
+    (the spawned workers, multiprocessing's resource tracker) is left running."""
+    out = tmp_path / "gen"
+    proc = subprocess.Popen([sys.executable, "-m", "teleop", "generate", *map(str, sources["lift"]), "--out", str(out),
+                             "--num", "500", "--workers", "2"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    children: dict[int, str] = {}
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list(out.glob("*.mcap")):  # mid-run: the workers are busy
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.2)
+        children = _children(proc.pid)
+        assert len(children) >= 3, children  # two workers and the resource tracker
+        proc.kill()
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and any(_alive(p, s) for p, s in children.items()):
+            time.sleep(0.1)
+        left = [p for p, s in children.items() if _alive(p, s)]
+        assert not left, f"still running 5 s after the kill: {left}"
+    finally:
+        for pid, started in children.items():
+            if _alive(pid, started):
+                os.kill(pid, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()

@@ -13,30 +13,29 @@ LeRobot is an optional extra, imported only when an export starts.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import re
 import shutil
-import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
-from replay.errors import TeleopError, first_line
+from replay.errors import first_line
 from replay.export.frames import (
     ACTION_MODES, ENV_STATE, INTERVENTION, INTERVENTION_FEATURE, feature_key, features, is_channel_first, object_layout,
     robot_layout,
 )
+from replay.export.lerobot_io import ExportError, dir_size, load_lerobot
 from replay.export.stats import image_stats
 from replay.export.stream import EpisodeEnd, FrameStream
+from replay.parallel.interrupts import is_cancelled, shielded
 from replay.render import RenderError, warm_up
 
-LEROBOT_HINT = "LeRobot is not installed: pip install 'mujoco-teleop[lerobot]'"
 DEFAULT_CAMERAS = ("front", "wrist")
 
 # Video codecs, as LeRobot's RGBEncoderConfig settings. Measured on rendered 224x224 frames
@@ -49,10 +48,6 @@ VIDEO_CODECS: dict[str, dict] = {
     "hevc": {"vcodec": "hevc", "preset": "veryfast", "crf": 24, "extra_options": {"x265-params": "log-level=error"}},
 }
 DEFAULT_CODEC = "h264"
-
-
-class ExportError(TeleopError, ValueError):
-    """Bad export input (files, flags, an existing dataset); the message is one line."""
 
 
 @dataclass
@@ -224,23 +219,6 @@ def _fps(hz: float) -> int:
 # -- LeRobot ----------------------------------------------------------------
 
 
-def _lerobot():
-    """The LeRobotDataset class, or a one-line ExportError saying which extra to install."""
-    try:
-        from lerobot.datasets import LeRobotDataset
-    except ImportError:
-        raise ExportError(LEROBOT_HINT) from None
-    try:
-        import av
-
-        # LeRobot's encoder hands logging back to FFmpeg's own printer: keep it to errors,
-        # not an "[mp4 @ 0x...] Starting second pass" line per video.
-        av.logging.set_libav_level(av.logging.ERROR)
-    except (ImportError, AttributeError):
-        pass
-    return LeRobotDataset
-
-
 def video_decoder() -> tuple[str, str]:
     """(decoder, why not torchcodec) for LeRobot reading the dataset back; why is "" for torchcodec.
 
@@ -355,10 +333,6 @@ def _open_dataset(
     return ds, True
 
 
-def _dir_size(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
-
-
 # -- the export -------------------------------------------------------------
 
 
@@ -404,20 +378,26 @@ def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]
     return chosen, summary
 
 
-def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None) -> ExportSummary:
-    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc)."""
+def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None,
+                   cancel: threading.Event | None = None) -> ExportSummary:
+    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc).
+
+    cancel: a token (the CLI sets it on Ctrl-C). Once set, or on a KeyboardInterrupt, the
+    export stops: the episode in progress is dropped, the saved ones are finalized and kept
+    (`interrupted` in the summary). An episode being saved is saved whole first.
+    """
     log = log or (lambda line: print(line, file=sys.stderr))
     paths = list(paths)
     check_options(opts)
     if opts.workers > 1 or opts.ray is not None:
         from replay.export.shards import export_parallel  # here, not at the top: that module builds on this one
 
-        return export_parallel(paths, opts, log)
+        return export_parallel(paths, opts, log, cancel)
     warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
     chosen, summary = select_episodes(paths, opts, log)
     robot_type = chosen[0].signature[0]
     fps, cameras = summary.fps, summary.cameras
-    LeRobotDataset = _lerobot()  # after the input checks: they answer at once, LeRobot takes seconds to import
+    LeRobotDataset = load_lerobot()  # after the input checks: they answer at once, LeRobot takes seconds to import
     decoder, why = video_decoder()
 
     first = load_episode(chosen[0].path)
@@ -447,7 +427,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         log(f"video: {decoder} decoder ({why})")  # slower reads in training, nothing wrong
     try:
         with image_stats():  # LeRobot's per-frame image statistics, from value counts (replay/export/stats.py)
-            _write(ds, chosen, first, opts, cameras, stream, summary)
+            _write(ds, chosen, first, opts, cameras, stream, summary, cancel)
     except KeyboardInterrupt:
         summary.interrupted = True
     finally:
@@ -456,7 +436,7 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
         if created and summary.episodes == 0 and opts.out.exists():
             shutil.rmtree(opts.out, ignore_errors=True)  # nothing saved: leave no half dataset behind
     summary.dataset_episodes = ds.meta.total_episodes
-    summary.bytes = _dir_size(opts.out) if opts.out.exists() else 0
+    summary.bytes = dir_size(opts.out) if opts.out.exists() else 0
     return summary
 
 
@@ -504,8 +484,12 @@ def _loader(path: Path) -> Callable[[], Episode]:
 
 
 def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, cameras, stream: FrameStream,
-           summary: ExportSummary) -> None:
-    """LeRobot's side: add the stream's frames, save each episode as its last frame arrives."""
+           summary: ExportSummary, cancel: threading.Event | None) -> None:
+    """LeRobot's side: add the stream's frames, save each episode as its last frame arrives.
+
+    Cancelled (the token, or a KeyboardInterrupt), it ends with KeyboardInterrupt between
+    frames; the episode in progress is dropped.
+    """
     from tqdm import tqdm
 
     keys = [feature_key(c) for c in cameras]
@@ -518,19 +502,22 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
                file=sys.stderr, dynamic_ncols=True)
     try:
         for item in stream:
+            if is_cancelled(cancel):
+                raise KeyboardInterrupt
             if not isinstance(item, EpisodeEnd):
                 ds.add_frame(item)
                 bar.update(1)
                 continue
-            with _interrupt_deferred() as interrupted:
-                ds.save_episode()
+            # LeRobot's save_episode writes data, video and metadata in turn; cut in between, the
+            # dataset would hold frames its metadata does not know of: a Ctrl-C waits for it.
+            _, interrupted = shielded(ds.save_episode)
             summary.episodes += 1
             summary.frames += item.steps
             if item.index + 1 < len(chosen):
                 bar.set_description(f"episode {item.index + 2}/{len(chosen)}")
             if opts.on_episode is not None:
                 opts.on_episode(summary.episodes, summary.frames)
-            if interrupted:
+            if interrupted or is_cancelled(cancel):
                 raise KeyboardInterrupt
     except BaseException:
         try:
@@ -544,34 +531,13 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
         bar.close()
 
 
-@contextlib.contextmanager
-def _interrupt_deferred() -> Iterator[list]:
-    """Hold a Ctrl-C until the block ends (the list then holds it): an episode is saved whole or not at all.
-
-    LeRobot's save_episode writes data, video and metadata in turn; cut in between, the
-    dataset would hold frames its metadata does not know of.
-    """
-    caught: list = []
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield caught
-        return
-    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield caught
-    finally:
-        signal.signal(signal.SIGINT, old)
-
-
 def _finish(ds, stream: FrameStream) -> None:
-    """Stop the stream, then finalize() with a second Ctrl-C ignored: cutting it short would lose saved episodes."""
-    main = threading.current_thread() is threading.main_thread()
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-    try:
-        stream.close()
-    finally:
+    """Stop the stream, then finalize(), with a Ctrl-C held meanwhile: cutting it short would lose saved episodes."""
+
+    def finish() -> None:
         try:
-            ds.finalize()
+            stream.close()
         finally:
-            if main:
-                signal.signal(signal.SIGINT, old)
+            ds.finalize()
+
+    shielded(finish)

@@ -20,32 +20,26 @@ import io
 import itertools
 import multiprocessing
 import shutil
-import signal
 import sys
 import tarfile
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from replay.cluster import ClusterError, connect_ray
 from replay.errors import first_line
+from replay.parallel import ClusterError, Runner, WorkerLost, shielded
 from replay.export.dataset import (
-    LEROBOT_HINT,
-    ExportError,
     ExportOptions,
     ExportSummary,
-    _dir_size,
-    _lerobot,
     export_dataset,
     select_episodes,
     video_decoder,
     wants_intervention,
 )
+from replay.export.lerobot_io import LEROBOT_HINT, ExportError, dir_size, load_lerobot
 
 # Two shards per worker even out episodes of different lengths, once there are enough episodes for
 # that to matter; each shard costs ~1 s more in the merge (LeRobot loads its episode metadata).
@@ -87,25 +81,20 @@ def split(steps: list[int], parts: int) -> list[range]:
 # -- in a worker ------------------------------------------------------------
 
 _progress = None  # a worker's queue back to the driver: (shard index, frames saved so far)
-_interruptible = False  # whether Ctrl-C ends a shard here (as it would end the export in the driver)
 
 
-def _init_worker(progress, interruptible: bool) -> None:
-    """Between shards a worker ignores Ctrl-C: one arriving idle would kill it, and with it the pool."""
-    global _progress, _interruptible
-    _progress, _interruptible = progress, interruptible
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _init_worker(progress) -> None:
+    """A local worker's start: the progress queue, and LeRobot loaded (seconds) before the clock starts."""
+    global _progress
+    _progress = progress
+    load_lerobot()
 
 
-def _ready() -> None:
-    """Load LeRobot (seconds) before the clock starts, as the single-process export does."""
-    _lerobot()
-
-
-def _export_shard(files: list[Path], opts: ExportOptions, index: int) -> ExportSummary:
+def _export_shard(files: list[Path], opts: ExportOptions, index: int, cancel: threading.Event | None) -> ExportSummary:
     """One shard with the single-process export; after each saved episode the driver's bar moves.
 
-    A Ctrl-C during it ends it as it ends a single-process export: the saved episodes are kept.
+    Once the driver drains the workers (Ctrl-C), `cancel` ends it as a Ctrl-C ends a
+    single-process export: the saved episodes are kept.
     """
     queue = _progress
 
@@ -113,12 +102,7 @@ def _export_shard(files: list[Path], opts: ExportOptions, index: int) -> ExportS
         if queue is not None:
             queue.put((index, frames))
 
-    if _interruptible:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        return export_dataset(files, replace(opts, on_episode=report), log=lambda line: None)
-    finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return export_dataset(files, replace(opts, on_episode=report), log=lambda line: None, cancel=cancel)
 
 
 def _ray_shard(files: list[tuple[str, bytes]], opts: ExportOptions) -> tuple[ExportSummary, bytes]:
@@ -150,8 +134,14 @@ def _untar(data: bytes, directory: Path) -> None:
 # -- the driver -------------------------------------------------------------
 
 
-def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]) -> ExportSummary:
-    """`export_dataset` with opts.workers > 1 or opts.ray: shards in parallel, then LeRobot's aggregation."""
+def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None],
+                    cancel: threading.Event | None = None) -> ExportSummary:
+    """`export_dataset` with opts.workers > 1 or opts.ray: shards in parallel, then LeRobot's aggregation.
+
+    Cancelled (the token, or a KeyboardInterrupt), local workers end their shard as one
+    process would (saved episodes kept), Ray tasks are cancelled, and the shards that came
+    back whole, in order, are merged.
+    """
     if opts.append:
         raise ExportError("appending runs in one process: leave out workers/Ray with append "
                           "(or export to a new directory in parallel)")
@@ -159,11 +149,8 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
         raise ExportError("Ray address is empty: give auto, HOST:PORT or ray://HOST:PORT")
     chosen, summary = select_episodes(paths, opts, log)
     _check_installed("lerobot", LEROBOT_HINT)  # the full import (seconds) overlaps the workers' start
-    if opts.ray is not None:
-        ray = _connect_ray(opts.ray)
-        parallel = opts.workers if opts.workers > 1 else max(1, int(ray.cluster_resources().get("CPU", 1)))
-    else:
-        parallel = opts.workers
+    runner = _runner(opts, opts.workers, cancel) if opts.ray is not None else None  # connects: a bad address fails now
+    parallel = runner.workers if runner is not None else opts.workers
     runs = split([e.steps for e in chosen], shard_count(len(chosen), parallel))
     # The shards' own settings: what the driver resolved, no progress or callbacks of their own.
     shard_opts = replace(opts, cameras=summary.cameras, only_success=False, progress=False, on_episode=None,
@@ -173,18 +160,21 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     shards = [_Shard(i, [chosen[k].path for k in run], sum(chosen[k].steps for k in run), parts / f"shard_{i:03d}")
               for i, run in enumerate(runs)]
     bar = _bar(opts, sum(s.frames for s in shards), len(shards), parallel)
+    progress = None
     try:
-        if opts.ray is not None:
-            results, interrupted, t0 = _run_ray(ray, shards, shard_opts, parallel, bar)
-        else:
-            results, interrupted, t0 = _run_processes(shards, shard_opts, parallel, bar)
-        with _no_interrupt():  # a Ctrl-C (a second one) must not cut the merge short
-            keep = _prefix(shards, results)
-            summary.interrupted = interrupted or len(keep) < len(shards)
-            bar.set_description("merging shards")
-            _merge(opts, [shards[i] for i, _ in keep])
+        if runner is None:  # local processes, each with a queue back to the bar
+            progress = multiprocessing.get_context("spawn").Queue()
+            runner = _runner(opts, min(parallel, len(shards)), cancel, progress)
+        with runner:
+            results, interrupted, t0 = _run(runner, shards, shard_opts, bar, progress)
+        keep = _prefix(shards, results)
+        summary.interrupted = interrupted or len(keep) < len(shards)
+        bar.set_description("merging shards")
+        shielded(lambda: _merge(opts, [shards[i] for i, _ in keep]))  # a Ctrl-C (a second one) must not cut it short
     finally:
         bar.close()
+        if progress is not None:
+            progress.close()
         shutil.rmtree(parts, ignore_errors=True)
     summary.seconds = time.perf_counter() - t0
     summary.episodes = sum(r.episodes for _, r in keep)
@@ -194,7 +184,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
         from lerobot.datasets import LeRobotDatasetMetadata  # optional extra, loaded by the merge already
 
         summary.dataset_episodes = LeRobotDatasetMetadata(opts.repo_id, root=opts.out).total_episodes
-        summary.bytes = _dir_size(opts.out)
+        summary.bytes = dir_size(opts.out)
     decoder, why = video_decoder()
     if why and opts.video and summary.cameras and summary.episodes:
         log(f"video: {decoder} decoder ({why})")  # as the single-process export says it
@@ -232,22 +222,11 @@ def _prefix(shards: list[_Shard], results: list[ExportSummary | None]) -> list[t
     return keep
 
 
-@contextlib.contextmanager
-def _no_interrupt() -> Iterator[None]:
-    main = threading.current_thread() is threading.main_thread()
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-    try:
-        yield
-    finally:
-        if main:
-            signal.signal(signal.SIGINT, old)
-
-
 def _merge(opts: ExportOptions, shards: list[_Shard]) -> None:
     """LeRobot's aggregation of the shard datasets, in order, into opts.out (nothing when no shard has episodes)."""
     if not shards:
         return
-    _lerobot()  # its logging settings, as the shards had them
+    load_lerobot()  # its logging settings, as the shards had them
     from lerobot.datasets.aggregate import aggregate_datasets  # optional extra: pip install '...[lerobot]'
 
     # aggregate_datasets shows tqdm bars of its own ("Copy data and videos") on stderr: ours is the one bar.
@@ -260,69 +239,82 @@ def _merge(opts: ExportOptions, shards: list[_Shard]) -> None:
             raise ExportError(f"merging the exported shards failed: {first_line(exc)}") from None
 
 
-# -- local worker processes -----------------------------------------------------
+# -- running the shards --------------------------------------------------------
 
 
-def _run_processes(shards: list[_Shard], opts: ExportOptions, workers: int, bar) -> tuple[list, bool, float]:
-    """Shards in spawned processes: (each shard's summary or None, interrupted, when the workers were ready).
+def _runner(opts: ExportOptions, workers: int, cancel: threading.Event | None, progress=None) -> Runner:
+    """The shards' runner: `workers` spawned processes (even one: shards never run in the driver), or Ray."""
+    try:
+        if opts.ray is not None:
+            return Runner(workers, ray=opts.ray, ray_options={"max_retries": 0}, cancel=cancel)
+        return Runner(workers, setup=_init_worker, setup_args=(progress,), cancel=cancel, processes=True)
+    except ClusterError as exc:  # no Ray, or nothing at the address: one line, as export_dataset raises
+        raise ExportError(str(exc)) from None
 
-    Start-up (spawn, LeRobot's import: seconds) is timed apart from the export, as in one process.
+
+def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progress) -> tuple[list, bool, float]:
+    """Each shard's summary (None where it did not run), whether interrupted, and when the workers were ready.
+
+    Start-up (spawn, LeRobot's import: seconds) is timed apart from the export, as in one
+    process. On Ray at most 2 x the workers' shards are in flight (each holds its episodes' bytes).
     """
-    ctx = multiprocessing.get_context("spawn")  # a GL context does not survive fork
-    progress = ctx.Queue()
+    ray = runner.backend == "ray"
     results: list[ExportSummary | None] = [None] * len(shards)
     shown = [0] * len(shards)  # frames of each shard already on the bar
-    workers = min(workers, len(shards))
-    interruptible = signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not when started ignoring it
-    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(progress, interruptible))
-    futures: dict[Future, int] = {}
-    interrupted = False
-    clean = False
+    load_lerobot()  # the driver's own import (for the merge) overlaps the workers'
     try:
-        ready = [pool.submit(_ready) for _ in range(workers)]
-        _lerobot()  # the driver's own import (for the merge) overlaps the workers'
-        for future in ready:
-            _result(future, "starting")
-        t0 = time.perf_counter()
-        bar.set_description(f"{len(shards)} shards on {workers} workers")
+        runner.wait_started()
+    except WorkerLost:
+        raise ExportError("a worker process died starting; try fewer workers") from None
+    t0 = time.perf_counter()
+    if not ray:
+        bar.set_description(f"{len(shards)} shards on {runner.workers} workers")
         bar.reset()  # the rate counts from here, not from the workers' start-up
-        futures = {pool.submit(_export_shard, s.files, replace(opts, out=s.out), s.index): s.index for s in shards}
-        pending = set(futures)
-        try:
-            while pending:
-                done, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-                _drain(progress, bar, shown)
-                for future in done:
-                    i = futures[future]
-                    results[i] = _result(future, f"exporting shard {i} ({shards[i].files[0].name}...)")
-                    bar.update(results[i].frames - shown[i])
-                    shown[i] = results[i].frames
-        except KeyboardInterrupt:
-            # The terminal's Ctrl-C reached the workers too: each finalizes the episodes it saved
-            # and returns. Wait for those, start nothing new, keep what finished.
-            interrupted = True
-            with _no_interrupt():
-                for future in futures:
-                    future.cancel()
-                wait([f for f in futures if not f.cancelled()])
-                for future, i in futures.items():
-                    if results[i] is None and future.done() and not future.cancelled() and future.exception() is None:
-                        results[i] = future.result()
-        clean = True
-    finally:
-        if not clean:  # an error: the running shards' work is lost anyway, stop them now
-            _stop_workers(pool)
-        with _no_interrupt():  # the shards are done: a Ctrl-C now must not lose them
-            pool.shutdown(wait=True, cancel_futures=True)
-        progress.close()
-    return results, interrupted, t0
 
+    def calls():
+        for s in shards:
+            if ray:
+                yield _ray_shard, [(f.name, f.read_bytes()) for f in s.files], opts
+            else:
+                yield _export_shard, s.files, replace(opts, out=s.out), s.index, runner.cancel_arg
 
-def _result(future: Future, doing: str):
+    def take(index: int, result) -> None:
+        if ray:
+            result, blob = result
+            if blob:
+                shards[index].out.mkdir(parents=True)
+                _untar(blob, shards[index].out)
+        results[index] = result
+        bar.update(result.frames - shown[index])
+        shown[index] = result.frames
+
+    poll = (lambda: _drain(progress, bar, shown)) if progress is not None else None
     try:
-        return future.result()
-    except BrokenProcessPool:
-        raise ExportError(f"a worker process died {doing}; try fewer workers") from None
+        for index, result in enumerate(runner.results(calls(), 2 * runner.workers, poll)):
+            take(index, result)
+    except KeyboardInterrupt:
+        # Local workers end their shard keeping the episodes they saved; Ray tasks are cancelled.
+        # Start nothing new, keep what finished.
+        for index, result in sorted(runner.drain().items()):
+            if results[index] is None:
+                take(index, result)
+        return results, True, t0
+    except ExportError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a worker lost, or a shard's error on Ray
+        raise _shard_error(runner, shards, exc) from None
+    return results, False, t0
+
+
+def _shard_error(runner: Runner, shards: list[_Shard], exc: Exception) -> Exception:
+    """A shard's failure as one line (an error in a local shard is a bug: it keeps its traceback)."""
+    shard = shards[runner.failed] if runner.failed is not None else None
+    what = f"shard {shard.index} ({shard.files[0].name}...)" if shard is not None else "a shard"
+    if runner.backend == "ray":
+        return ExportError(f"{what} failed on Ray: {first_line(exc)[:200]}")
+    if isinstance(exc, WorkerLost):
+        return ExportError(f"a worker process died exporting {what}; try fewer workers")
+    return exc
 
 
 def _drain(progress, bar, shown: list[int]) -> None:
@@ -334,69 +326,3 @@ def _drain(progress, bar, shown: list[int]) -> None:
         if frames > shown[index]:
             bar.update(frames - shown[index])
             shown[index] = frames
-
-
-def _stop_workers(pool: ProcessPoolExecutor) -> None:
-    # ProcessPoolExecutor.terminate_workers() comes with Python 3.14; until then, its process table.
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
-        with contextlib.suppress(Exception):
-            process.terminate()
-
-
-# -- Ray --------------------------------------------------------------------------
-
-
-def _connect_ray(address: str):
-    """replay.cluster's connect_ray, its one-line errors as ExportErrors (what export_dataset raises)."""
-    try:
-        return connect_ray(address)
-    except ClusterError as exc:
-        raise ExportError(str(exc)) from None
-
-
-def _run_ray(ray, shards: list[_Shard], opts: ExportOptions, parallel: int, bar) -> tuple[list, bool, float]:
-    """Shards as Ray tasks, at most 2 x parallel in flight (each holds its episodes' bytes)."""
-    _lerobot()  # for the merge; before the clock starts, as in one process
-    t0 = time.perf_counter()
-    task = ray.remote(num_cpus=1, max_retries=0)(_ray_shard)
-    results: list[ExportSummary | None] = [None] * len(shards)
-    todo = list(shards)
-    running: dict = {}
-    clean = False
-    try:
-        while todo or running:
-            while todo and len(running) < 2 * parallel:
-                shard = todo.pop(0)
-                files = [(f.name, f.read_bytes()) for f in shard.files]
-                running[task.remote(files, opts)] = shard
-            done, _ = ray.wait(list(running), num_returns=1)
-            for ref in done:
-                shard = running.pop(ref)
-                summary, blob = _ray_result(ray, ref, shard)
-                if blob:
-                    shard.out.mkdir(parents=True)
-                    _untar(blob, shard.out)
-                results[shard.index] = summary
-                bar.update(summary.frames)
-        clean = True
-    except KeyboardInterrupt:
-        return results, True, t0  # the shards that came back are kept; the running ones are cancelled below
-    finally:
-        if not clean:
-            for ref in running:
-                with contextlib.suppress(Exception):
-                    ray.cancel(ref, force=True)
-    return results, False, t0
-
-
-def _ray_result(ray, ref, shard: _Shard) -> tuple[ExportSummary, bytes]:
-    try:
-        return ray.get(ref)
-    except ray.exceptions.RayTaskError as exc:
-        cause = exc.cause
-        if isinstance(cause, ExportError):
-            raise ExportError(str(cause)) from None
-        raise ExportError(f"shard {shard.index} ({shard.files[0].name}...) failed on Ray: "
-                          f"{first_line(cause or exc)[:200]}") from None
-    except ray.exceptions.RayError as exc:  # a worker or node lost
-        raise ExportError(f"shard {shard.index} ({shard.files[0].name}...) failed on Ray: {first_line(exc)[:200]}") from None

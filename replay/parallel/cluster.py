@@ -2,7 +2,9 @@
 
 Ray is an optional extra (`pip install 'mujoco-teleop[cluster]'`), imported only
 here and only when asked. `ray.init` on an address nothing answers at retries
-for minutes, so an address is first tried with a plain TCP connect.
+for minutes, so an address is first tried with a plain TCP connect. Nothing here
+detaches: tasks belong to this driver, and Ray cancels them when the driver goes
+away (exits, or is killed).
 """
 
 from __future__ import annotations

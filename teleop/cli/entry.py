@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 import sys
 
 from teleop.cli import devices as cli_devices
@@ -22,6 +21,7 @@ from teleop.cli import run as cli_run
 from teleop.cli import serve as cli_serve
 from scenes.errors import TeleopError, first_line
 from teleop.cli.json_output import json_stdout
+from teleop.cli.signals import terminate_as_interrupt
 
 MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export, cli_generate, cli_eval)
 
@@ -38,15 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _terminate(signum, frame) -> None:
-    """SIGTERM ends a session the way Ctrl-C does: the episode in progress is kept."""
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    signal.signal(signal.SIGTERM, _terminate)
+    terminate_as_interrupt()  # SIGTERM ends a session the way Ctrl-C does: the episode in progress is kept
     as_json = bool(getattr(args, "json", False))
     try:
         with json_stdout() if as_json else contextlib.nullcontext():

@@ -9,6 +9,7 @@ import warnings
 from pathlib import Path
 
 from teleop.errors import UsageError
+from teleop.cli.signals import cancel_on_interrupt
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -103,7 +104,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             ray=args.ray,
             object_state=not args.no_object_state,
         )
-        summary = export_dataset(args.paths, opts)
+        with cancel_on_interrupt() as cancel:  # Ctrl-C: the episode being saved ends whole, the saved ones stay
+            summary = export_dataset(args.paths, opts, cancel=cancel)
     except ExportError as exc:
         raise UsageError(str(exc)) from None
     print(summary.line())

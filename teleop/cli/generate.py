@@ -8,6 +8,7 @@ from pathlib import Path
 
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
+from teleop.cli.signals import cancel_on_interrupt
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -80,7 +81,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
         max_attempts=args.max_attempts,
         progress=sys.stderr.isatty(),
     )
-    summary = generate(args.sources, opts)
+    with cancel_on_interrupt() as cancel:  # Ctrl-C: the workers stop, what was kept stays
+        summary = generate(args.sources, opts, cancel=cancel)
     if args.json:
         print_json(summary.to_json())
     else:

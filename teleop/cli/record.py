@@ -14,6 +14,7 @@ from pathlib import Path
 
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
+from teleop.cli.signals import cancel_on_interrupt
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -123,7 +124,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
             from replay.viewer import serve_episode
         except ImportError as exc:
             raise UsageError(f"the episode viewer is not available: {exc}") from None
-        return int(serve_episode(episode, args.host, args.port) or 0)
+        # Ctrl-C and SIGTERM stop the viewer, even when started with SIGINT ignored (as a background job).
+        with cancel_on_interrupt(even_if_ignored=True) as stop:
+            return int(serve_episode(episode, args.host, args.port, stop=stop) or 0)
 
     out: dict = {"path": str(args.path), "mode": mode, "steps": episode.steps, "seconds": episode.seconds,
                  "truncated": episode.truncated}

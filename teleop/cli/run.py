@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from scenes import BUILTIN_ROBOTS, TASKS
 from scenes.errors import TeleopError
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
+from teleop.cli.signals import interrupts_ignored
 from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
@@ -142,11 +142,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             episodes.append(entry)
     except KeyboardInterrupt:
         interrupted = True
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the save short
-        try:
+        with interrupts_ignored():  # a second Ctrl-C must not cut the save short
             session.close()
-        finally:
-            signal.signal(signal.SIGINT, previous)
         log("interrupted: the episode in progress was saved, marked incomplete")
     except RecorderError as exc:
         raise UsageError(f"recording failed: {exc}") from None
@@ -207,7 +204,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     root = Path(__file__).resolve().parents[2]
     if not (root / "bench" / "run.py").is_file():
         raise UsageError("the bench needs a source checkout: bench/ is not installed with the package")
-    benches = sorted(p.stem for p in (root / "bench").glob("*.py") if p.stem not in ("run", "__init__", "__main__"))
+    benches = sorted(p.stem for p in (root / "bench").glob("*.py") if "\ndef measure(" in p.read_text())  # bench modules
     unknown = [w.strip() for w in (args.only or "").split(",") if w.strip() and w.strip() not in benches]
     if unknown:
         raise UsageError(f"--only {','.join(unknown)}: unknown bench (benches: {', '.join(benches)})")

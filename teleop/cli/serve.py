@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from teleop.cli.run import add_session_args, make_session, open_session_devices
+from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
 
 
@@ -59,10 +60,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         args.control_hz = getattr(policy, "trained_on", None) and policy.trained_on.fps or 30.0
     session = make_session(args, verify="background", on_error="stop")
     devices, problems = open_session_devices(args, session.n_arms, serving=True)
-    return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed,
-                 status_file=args.status_file, problems=problems, log=lambda line: print(line, flush=True),
-                 policy=policy, token=token, no_token=args.no_token,
-                 page_keyboard=asks_for_keyboard(args.device.split(",")))
+    # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
+    with cancel_on_interrupt(even_if_ignored=True) as stop:
+        return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed,
+                     rot_speed=args.rot_speed, status_file=args.status_file, problems=problems,
+                     log=lambda line: print(line, flush=True), policy=policy, token=token, no_token=args.no_token,
+                     page_keyboard=asks_for_keyboard(args.device.split(",")), stop=stop)
 
 
 def _load_policy(args: argparse.Namespace):

@@ -16,14 +16,12 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import signal
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +31,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from recorder import next_episode_index
 from recorder.annotations import read_subtasks, write_subtasks
 from replay.annotate import auto_subtasks
-from replay.cluster import connect_ray
+from replay.parallel import Runner, connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
 from scenes.errors import TeleopError, first_line
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
@@ -203,107 +201,9 @@ def run_batch(job: Job, seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
         return [run_attempt(job, seed, index, Path(tmp)) for seed, index in seeds]
 
 
-_JOB: Job | None = None  # a local worker process's job, set once by its initializer
-
-
-def _init_worker(job: Job) -> None:
-    global _JOB
-    _JOB = job
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops the workers
-    Session(scene=job.scene, robot=job.robot, seed=0, control_hz=job.control_hz)  # imports and a first build, paid at start-up
-
-
-def _ready() -> None:
-    time.sleep(0.2)  # long enough that each worker takes one of these, so all have started
-
-
-def _local_batch(seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
-    assert _JOB is not None
-    return run_batch(_JOB, seeds)
-
-
-# -- backends -------------------------------------------------------------------
-
-
-class _InProcess:
-    """One worker: the driver's own process."""
-
-    workers = 1
-    backend = "local"
-
-    def __init__(self, job: Job) -> None:
-        self.job = job
-
-    def submit(self, seeds):
-        fut: Future = Future()
-        fut.set_result(run_batch(self.job, seeds))
-        return fut
-
-    def wait(self, pending):
-        return set(pending)
-
-    def result(self, fut):
-        return fut.result()
-
-    def close(self, cancel: bool = False) -> None:
-        pass
-
-
-class _Processes(_InProcess):
-    """K local worker processes (spawned: a GL context or MuJoCo state never crosses a fork)."""
-
-    def __init__(self, job: Job, workers: int) -> None:
-        self.workers = workers
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                        initializer=_init_worker, initargs=(job,))
-        for fut in [self.pool.submit(_ready) for _ in range(workers)]:
-            fut.result()  # start-up (spawn, imports) is timed apart from generation
-
-    def submit(self, seeds):
-        return self.pool.submit(_local_batch, list(seeds))
-
-    def wait(self, pending):
-        done, _ = wait(pending, return_when=FIRST_COMPLETED)
-        return done
-
-    def close(self, cancel: bool = False) -> None:
-        if cancel:  # interrupted: stop the batches in flight now rather than let them finish
-            for process in list(getattr(self.pool, "_processes", {}).values()):  # the executor has no public kill
-                process.terminate()
-        self.pool.shutdown(wait=True, cancel_futures=True)
-
-
-class _Ray(_InProcess):
-    """Batches as Ray tasks; each returns its episodes' bytes to the driver."""
-
-    backend = "ray"
-
-    def __init__(self, job: Job, address: str) -> None:
-        ray = connect_ray(address)
-        self.ray = ray
-        self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self.job_ref = ray.put(job)
-        self.task = ray.remote(num_cpus=1)(run_batch)
-        self.refs: set = set()  # tasks in flight
-
-    def submit(self, seeds):
-        ref = self.task.remote(self.job_ref, list(seeds))
-        self.refs.add(ref)
-        return ref
-
-    def wait(self, pending):
-        done, _ = self.ray.wait(list(pending), num_returns=1)
-        return set(done)
-
-    def result(self, ref):
-        self.refs.discard(ref)
-        return self.ray.get(ref)
-
-    def close(self, cancel: bool = False) -> None:
-        if cancel:
-            for ref in self.refs:
-                self.ray.cancel(ref, force=True)
-        # the cluster (or the caller's local instance) stays up
+def _warm_up(job: Job) -> None:
+    """A local worker's start: imports and a first build of the scene, paid before the clock starts."""
+    Session(scene=job.scene, robot=job.robot, seed=0, control_hz=job.control_hz)
 
 
 # -- the driver -----------------------------------------------------------------
@@ -324,8 +224,12 @@ class GenerateOptions:
 
 
 def generate(sources: Iterable[str | Path], opts: GenerateOptions,
-             log: Callable[[str], None] | None = None) -> GenerateSummary:
-    """Generate `opts.num` successful episodes from the sources into `opts.out`."""
+             log: Callable[[str], None] | None = None, cancel: threading.Event | None = None) -> GenerateSummary:
+    """Generate `opts.num` successful episodes from the sources into `opts.out`.
+
+    cancel: a token (the CLI sets it on Ctrl-C); once set, generation stops as on a
+    KeyboardInterrupt: the batches in flight end, what was kept stays, `interrupted` is true.
+    """
     log = log or (lambda line: print(line, file=sys.stderr))
     if opts.num <= 0:
         raise GenerateError(f"the number of episodes to generate must be positive, got {opts.num}")
@@ -343,27 +247,28 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
     max_attempts = opts.max_attempts or 10 * opts.num + 10
     t_start = time.perf_counter()
     if opts.ray is not None:
-        pool = _Ray(job, opts.ray)
+        runner = Runner(ray=opts.ray, shared=job, cancel=cancel)
     else:
         workers = opts.workers or os.cpu_count() or 1
-        pool = _InProcess(job) if workers == 1 else _Processes(job, workers)
-    opts.out.mkdir(parents=True, exist_ok=True)
-    base = next_episode_index(opts.out)
-    if opts.keep_failures:
-        base = max(base, next_episode_index(opts.out / "failures"))
-    # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
-    batch = opts.batch or (max(1, min(8, opts.num // (2 * pool.workers))) if pool.backend == "ray" else 2)
-    summary = GenerateSummary(workers=pool.workers, backend=pool.backend)
-    t0 = time.perf_counter()
-    summary.startup_s = round(t0 - t_start, 3)
-    try:
-        _drive(pool, job, opts, base, batch, max_attempts, summary)
-    except KeyboardInterrupt:
-        summary.interrupted = True
-    finally:
-        pool.close(cancel=summary.interrupted)
-        work = time.perf_counter() - t0
-        summary.seconds = round(time.perf_counter() - t_start, 3)
+        runner = Runner(workers, shared=job, setup=_warm_up, setup_args=(job,), cancel=cancel)
+    summary = GenerateSummary(workers=runner.workers, backend=runner.backend)
+    with runner:
+        summary.startup_s = runner.wait_started()  # spawn, imports, a first build (or joining Ray): not timed as work
+        opts.out.mkdir(parents=True, exist_ok=True)
+        base = next_episode_index(opts.out)
+        if opts.keep_failures:
+            base = max(base, next_episode_index(opts.out / "failures"))
+        # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
+        batch = opts.batch or (max(1, min(8, opts.num // (2 * runner.workers))) if runner.backend == "ray" else 2)
+        t0 = time.perf_counter()
+        try:
+            _drive(runner, opts, base, batch, max_attempts, summary)
+        except KeyboardInterrupt:
+            summary.interrupted = True
+            runner.stop()  # the batches in flight end now rather than finish: what was kept stays
+        finally:
+            work = time.perf_counter() - t0
+    summary.seconds = round(time.perf_counter() - t_start, 3)
     summary.success_rate = round(summary.successes / summary.attempts, 4) if summary.attempts else 0.0
     summary.episodes_per_min = round(60.0 * summary.successes / work, 2) if work > 0 else 0.0
     if summary.successes < opts.num and not summary.interrupted:
@@ -372,42 +277,37 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
     return summary
 
 
-def _drive(pool, job: Job, opts: GenerateOptions, base: int, batch: int, max_attempts: int,
+def _drive(runner: Runner, opts: GenerateOptions, base: int, batch: int, max_attempts: int,
            summary: GenerateSummary) -> None:
+    """Hand out batches of seeds as they are needed and take their attempts in seed order."""
     next_seed = 0  # attempts handed out
-    pending: dict = {}  # future -> batch number
-    results: dict[int, list[Attempt]] = {}  # finished batches waiting for their turn
-    taken = 0  # batches consumed in order
-    in_flight = 2 * pool.workers
+    in_flight = 2 * runner.workers
     columns = (TextColumn("generate"), BarColumn(), MofNCompleteColumn(), TextColumn("kept · {task.fields[info]}"),
                TimeRemainingColumn())
     with Progress(*columns, disable=not opts.progress, transient=False,
                   console=Console(stderr=True)) as bar:
         task = bar.add_task("generate", total=opts.num, info="")
-        n_batches = 0
         while summary.successes < opts.num:
-            while len(pending) < in_flight and next_seed < max_attempts:
+            while runner.running < in_flight and next_seed < max_attempts:
                 # Hand out only the attempts still expected to be needed: near the end, work beyond
                 # --num successes would be thrown away (the rate is estimated from the attempts so far).
                 rate = (summary.successes + 1) / (summary.attempts + 1)
                 deficit = math.ceil((opts.num - summary.successes) / rate) - (next_seed - summary.attempts)
                 if deficit <= 0:
                     break
-                size = max(1, min(batch, math.ceil(deficit / pool.workers), max_attempts - next_seed))
-                seeds = [(opts.seed + i, base + i) for i in range(next_seed, next_seed + size)]
-                pending[pool.submit(seeds)] = n_batches
-                n_batches += 1
+                size = max(1, min(batch, math.ceil(deficit / runner.workers), max_attempts - next_seed))
+                runner.submit(run_batch, runner.shared, [(opts.seed + i, base + i) for i in range(next_seed, next_seed + size)])
                 next_seed += size
-            if not pending and taken not in results:
+            if not runner.pending:
                 break
-            for fut in pool.wait(set(pending)):
-                results[pending.pop(fut)] = pool.result(fut)
-            while taken in results and summary.successes < opts.num:
-                for attempt in results.pop(taken):
+            runner.wait()
+            for attempts in runner.ready():
+                for attempt in attempts:
                     if summary.successes >= opts.num:
                         break
                     _take(attempt, opts, summary)
-                taken += 1
+                if summary.successes >= opts.num:
+                    break
             rate = summary.successes / summary.attempts if summary.attempts else 0.0
             bar.update(task, completed=summary.successes,
                        info=f"{summary.attempts} attempts, {rate:.0%} success")

@@ -7,14 +7,15 @@ real-time loop, and a write error stops recording while driving goes on.
 
 from __future__ import annotations
 
-import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from devices.base import Device
 from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
+from replay.parallel import shielded
 from teleop.control.session import Session
 from teleop.web.access import resolve_token
 from teleop.web.app import WebApp
@@ -46,13 +47,16 @@ def serve(
     token: str | None = None,
     no_token: bool = False,
     page_keyboard: bool | None = None,
+    stop: threading.Event | None = None,
 ) -> int:
-    """Serve `session` at http://host:port until Ctrl-C (or SIGTERM); returns 0, or 1 if the loop failed.
+    """Serve `session` at http://host:port until Ctrl-C or `stop` is set; returns 0, or 1 if the loop failed.
 
     devices: spec words ("gizmo", "keyboard", "spacemouse[:N...]", "script:FILE")
     and/or started Device objects; words that cannot start are listed on the page.
     pos_speed / rot_speed: hold-to-move speeds (m/s, rad/s) for keyboard and SpaceMouse.
-    An episode in progress at the end is saved, marked incomplete.
+    An episode in progress at the end is saved, marked incomplete; a Ctrl-C meanwhile waits for it.
+    stop: a cancellation token (`teleop serve` sets it on Ctrl-C and SIGTERM); a script may
+    rely on the KeyboardInterrupt of its own Ctrl-C instead.
     policy: a Policy, a LeRobot pretrained-model folder or `script:FILE`; it drives until
     the operator touches a device, and gets control back by the key `p` or the panel's
     button (teleop.learn.takeover). Recorded episodes then say who drove each step.
@@ -104,23 +108,16 @@ def serve(
     if not is_loopback(host) and host in ("0.0.0.0", "", "::"):
         log("  (from another machine: this machine's name or address in place of 127.0.0.1)")
 
-    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started with SIGINT ignored
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
-        app.wait()
+        while not app.wait(0.2):
+            if stop is not None and stop.is_set():
+                break
         if app.sim.error:
             print(f"teleop serve: control loop stopped: {app.sim.error}", file=sys.stderr)
     except KeyboardInterrupt:
         pass
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut a file short
-        signal.signal(signal.SIGTERM, previous)
-        try:
-            saved = app.close()
-            if takeover is not None:
-                takeover.close()
-        finally:
-            signal.signal(signal.SIGINT, previous_int)  # the caller's handler again (serve is a library call too)
+        saved, _ = shielded(lambda: _close(app, takeover))  # a second Ctrl-C must not cut a file short
     for path in saved:
         log(f"saved {path} (incomplete: stopped mid-episode)")
     snap = app.sim.snapshot
@@ -142,5 +139,10 @@ def _takeover(session: Session, policy, device: str):
     return takeover
 
 
-def _raise_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+def _close(app: WebApp, takeover) -> list[Path]:
+    """Stop serving and save an episode in progress (marked incomplete); its files."""
+    try:
+        return app.close()
+    finally:
+        if takeover is not None:
+            takeover.close()
