@@ -77,7 +77,8 @@ def export_rate(paths: list[Path], out: Path, vcodec: str | None = None, workers
 
 def export_run(paths: list[Path], out: Path, vcodec: str | None = None, workers: int = 1) -> tuple[float, float]:
     """(frames/s as the export's summary times it, wall seconds of the whole call)."""
-    from replay.export.dataset import ExportOptions, export_dataset
+    from replay.export.dataset import ExportOptions
+    from replay.export import export_dataset
 
     opts = ExportOptions(
         out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False,
@@ -101,7 +102,7 @@ def _measure(quick: bool) -> dict[str, float]:
     from teleop.cli.export import quiet_environment
 
     quiet_environment()  # as `teleop export`: no encoder banners or extra progress bars
-    from replay.export.dataset import _lerobot
+    from replay.export.lerobot_io import load_lerobot
     from replay.render import DEFAULTS, TUNED
 
     with tempfile.TemporaryDirectory(prefix="bench_export_") as tmp:
@@ -112,7 +113,7 @@ def _measure(quick: bool) -> dict[str, float]:
         default = render_rate(paths[0], cameras, DEFAULTS, frames=10 if quick else 30, repeats=1)
         out = {"render_fps": round(render, 1), "render_fps_default": round(default, 1)}
         try:
-            _lerobot()
+            load_lerobot()
         except ValueError:  # LeRobot not installed: the export figures cannot be taken
             return out
         runs = [export_rate(paths, tmp / f"dataset{i}") for i in range(1 if quick else 2)]

@@ -79,11 +79,11 @@ def _browser_device(name: str, arg: str, options: DeviceOptions) -> Device:
         return PhoneDevice(name=f"phone{suffix}", arm=arm)
     from devices.webhid import WebHidSpaceMouse
 
-    kw = _spacemouse_options("", options)[1]
+    kw = spacemouse_options("", options)[1]
     return WebHidSpaceMouse(name=f"webhid-spacemouse{suffix}", arm=arm, **kw)
 
 
-def _spacemouse_options(arg: str, options: DeviceOptions) -> tuple[int | None, dict]:
+def spacemouse_options(arg: str, options: DeviceOptions) -> tuple[int | None, dict]:
     """Parse "N:facing:hold:arm=1:..." into (index or None, SpaceMouseDevice keyword arguments)."""
     index: int | None = None
     kw: dict = {
@@ -125,7 +125,7 @@ def _spacemouse_options(arg: str, options: DeviceOptions) -> tuple[int | None, d
 def _spacemouse(arg: str, options: DeviceOptions) -> Device:
     from devices.spacemouse import SpaceMouseDevice, find_spacemice, open_hid, reopener
 
-    index, kw = _spacemouse_options(arg, options)
+    index, kw = spacemouse_options(arg, options)
     found = find_spacemice()
     if not found:
         raise DeviceError(
@@ -157,7 +157,7 @@ def _expand(word: str) -> list[str]:
     if name.strip().lower() != "spacemouse":
         return [word]
     try:
-        index, _ = _spacemouse_options(arg, DeviceOptions())
+        index, _ = spacemouse_options(arg, DeviceOptions())
         if index is not None:
             return [word]
         from devices.spacemouse import find_spacemice

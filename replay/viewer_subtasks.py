@@ -63,7 +63,7 @@ def listing_markdown(subtasks: list[Subtask], dt: float) -> str:
         for i, s in enumerate(subtasks))
 
 
-def _step_from_browser(value: object, steps: int) -> int | None:
+def step_from_browser(value: object, steps: int) -> int | None:
     """A step typed in the browser as an int inside the episode, or None (dropped)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or int(value) != value:
         return None
@@ -240,7 +240,7 @@ class SubtaskPanel:
     def _on_boundary_step(self, event) -> None:
         if event.client_id is None:
             return
-        step = _step_from_browser(self.boundary_step.value, self.episode.steps)
+        step = step_from_browser(self.boundary_step.value, self.episode.steps)
         if step is None:  # dropped; the field keeps what was typed, the boundary stays
             with self._lock:
                 self.message = f"refused: {self.boundary_step.value!r} is not a step of this episode (0-{self.episode.steps - 1})"

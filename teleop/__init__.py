@@ -16,8 +16,10 @@ from the robot's base, z up) with wxyz quaternions, as MuJoCo writes them.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import dataclasses
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from devices.base import Device, DeviceError
 from devices.command import Command
@@ -27,7 +29,8 @@ from devices.script import ScriptDevice
 from devices.spacemouse import SpaceMouseDevice
 from recorder.format import EpisodeMeta
 from replay import Episode, VerifyResult, load_episode, replay_states, resimulate
-from replay.export.dataset import ExportOptions, ExportSummary, export_dataset
+from replay.export.dataset import ExportOptions, ExportSummary
+from replay.export import export_dataset
 from scenes.errors import TeleopError
 from teleop.control.controller import Controller, StepResult
 from teleop.control.loop import EpisodeResult, run_episode
@@ -63,39 +66,45 @@ __all__ = [
 
 def export_lerobot(
     paths: Iterable[str | Path],
-    out: str | Path,
-    repo_id: str,
-    cameras: Sequence[str] | None = None,
-    image_size: tuple[int, int] = (224, 224),
-    action: str = "joint",
-    task: str | None = None,
-    only_success: bool = False,
-    video: bool = True,
-    vcodec: str | None = None,
-    append: bool = False,
-    progress: bool = False,
+    out: str | Path | None = None,
+    repo_id: str | None = None,
+    *,
+    options: ExportOptions | None = None,
+    **fields: Any,
 ) -> ExportSummary:
     """Write recorded episodes (files or folders) into a LeRobot dataset at `out`.
 
-    Camera images (`cameras`; "wrist" means every arm's wrist camera) are
-    rendered from the recorded states at `image_size` (width, height) pixels.
-    action: "joint" (recorded joint targets + gripper), "ee_pose" (commanded EE
-    pose) or "ee_delta" (commanded minus actual EE pose, m and rotation vector).
-    Needs the `lerobot` extra.
+    Every export option is reachable, as `teleop export` has it: pass `options` (a
+    `teleop.ExportOptions`, from `replay.export.dataset`) and/or any of its fields as
+    keywords, which win over `options`. Among them: camera images (`cameras`; "wrist"
+    means every arm's wrist camera) rendered from the recorded states at `image_size`
+    (width, height) pixels; action: "joint" (recorded joint targets + gripper), "ee_pose"
+    (commanded EE pose) or "ee_delta" (commanded minus actual EE pose, m and rotation
+    vector); `workers` / `ray` (shards in parallel); `object_state`; `video` / `vcodec`;
+    `append`. The progress bar is off unless `progress=True`. A keyword that is no field
+    raises TypeError naming it. Needs the `lerobot` extra.
     """
-    options = ExportOptions(
-        out=Path(out),
-        repo_id=repo_id,
-        cameras=list(cameras) if cameras is not None else None,
-        image_size=(int(image_size[0]), int(image_size[1])),
-        action=action,
-        task=task,
-        only_success=only_success,
-        video=video,
-        vcodec=vcodec,
-        append=append,
-        progress=progress,
-    )
+    known = {f.name for f in dataclasses.fields(ExportOptions)}
+    if unknown := sorted(set(fields) - known):
+        raise TypeError(f"export_lerobot() got unexpected keyword argument(s) {', '.join(unknown)} "
+                        f"(ExportOptions has {', '.join(sorted(known))})")
+    if out is not None:
+        fields["out"] = out
+    if repo_id is not None:
+        fields["repo_id"] = repo_id
+    if "out" in fields:
+        fields["out"] = Path(fields["out"])
+    if fields.get("cameras") is not None:
+        fields["cameras"] = list(fields["cameras"])
+    if "image_size" in fields:
+        width, height = fields["image_size"]
+        fields["image_size"] = (int(width), int(height))
+    if options is None:
+        if missing := [name for name in ("out", "repo_id") if name not in fields]:
+            raise TypeError(f"export_lerobot() needs {' and '.join(missing)} (or options=ExportOptions(...))")
+        options = ExportOptions(**{"progress": False, **fields})
+    else:
+        options = dataclasses.replace(options, **fields)
     return export_dataset(list(paths), options)
 
 

@@ -24,7 +24,8 @@ import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
 from replay import load_episode  # noqa: E402
-from replay.export.dataset import ExportError, ExportOptions, export_dataset  # noqa: E402
+from replay.export.dataset import ExportError, ExportOptions  # noqa: E402
+from replay.export import export_dataset  # noqa: E402
 
 HZ = "15"
 SIZE = "64x64"

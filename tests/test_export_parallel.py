@@ -19,7 +19,8 @@ from tests.conftest import assert_one_line_error, run_cli, run_json, write_scrip
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
-from replay.export.dataset import ExportError, ExportOptions, export_dataset  # noqa: E402
+from replay.export.dataset import ExportError, ExportOptions  # noqa: E402
+from replay.export import export_dataset  # noqa: E402
 from replay.export.shards import shard_count, split  # noqa: E402
 
 HZ = "15"

@@ -117,7 +117,8 @@ def exported(tmp_path_factory):
     """A scripted lift episode recorded by the CLI and exported with PNG frames (exact pixels)."""
     from lerobot.datasets import LeRobotDataset  # the test command installs the lerobot extra: no skip
 
-    from replay.export.dataset import ExportOptions, export_dataset
+    from replay.export.dataset import ExportOptions
+    from replay.export import export_dataset
 
     root = tmp_path_factory.mktemp("gym")
     result = run_cli("run", "--device", f"script:{LIFT_SCRIPT}", "--record", str(root / "rec"), "--seed", "3")

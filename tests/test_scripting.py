@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
 import sys
+
+import pytest
 
 import teleop
 from tests.conftest import ROOT
@@ -64,3 +67,21 @@ def test_recorder_keeps_an_episode_cut_short_by_an_exception(tmp_path):
     episode = teleop.load_episode(rec.paths[0])
     assert episode.steps == 7 and not episode.meta.complete
     assert teleop.resimulate(episode).bit_exact
+
+
+def test_export_lerobot_takes_the_options_object(tmp_path):
+    """Every export option reaches `teleop.export_lerobot`: the options object, its fields as keywords
+    (which win over it), and nothing else."""
+    with pytest.raises(TypeError, match="worker"):
+        teleop.export_lerobot([], out=tmp_path / "x", repo_id="t/x", worker=2)
+    session = teleop.Session(scene="lift", robot="panda", seed=0, control_hz=30)
+    with teleop.Recorder(session, tmp_path / "episodes", verify="off") as rec:
+        teleop.run_episode(session, [], max_steps=6)
+    options = teleop.ExportOptions(out=tmp_path / "unused", repo_id="t/unused", cameras=["front"], object_state=False,
+                                   progress=False)
+    summary = teleop.export_lerobot(rec.paths, tmp_path / "ds", "t/ds", options=options, cameras=[], video=False)
+    features = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())["features"]
+    assert summary.episodes == 1 and summary.frames == 6 and summary.cameras == []
+    assert "observation.environment_state" not in features  # from the options object
+    assert not any(key.startswith("observation.images") for key in features)  # the keyword won
+    assert not (tmp_path / "unused").exists()

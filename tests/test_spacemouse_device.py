@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from devices.base import DeviceError
-from devices.registry import DeviceOptions, _spacemouse_options, make_device
+from devices.registry import DeviceOptions, make_device, spacemouse_options
 from devices.spacemouse import SpaceMouseDevice, find_spacemice, open_hid, open_problem, spacenavd_running
 from devices.spacemouse_protocol import encode_buttons, encode_combined, encode_separate
 
@@ -202,8 +202,8 @@ def test_bad_options_are_one_line_errors():
     with pytest.raises(DeviceError, match="right-button"):
         SpaceMouseDevice(Port().open, right_button="explode")
     with pytest.raises(DeviceError, match="bad SpaceMouse option"):
-        _spacemouse_options("1:wobble", DeviceOptions())
-    index, kw = _spacemouse_options("1:facing:hold:right=save:sensitivity=0.5", DeviceOptions(pos_speed=0.3))
+        spacemouse_options("1:wobble", DeviceOptions())
+    index, kw = spacemouse_options("1:facing:hold:right=save:sensitivity=0.5", DeviceOptions(pos_speed=0.3))
     assert index == 1
     assert kw["stance"] == "facing" and kw["gripper_mode"] == "hold" and kw["right_button"] == "save"
     assert kw["sensitivity"] == 0.5 and kw["pos_speed"] == 0.3

@@ -20,7 +20,8 @@ from devices.command import Command
 from devices.gizmo import GizmoDevice
 from recorder.format import CONTROL_HUMAN, CONTROL_POLICY
 from replay import load_episode
-from replay.export.dataset import ExportOptions, export_dataset
+from replay.export.dataset import ExportOptions
+from replay.export import export_dataset
 from teleop.learn.gym_env import TeleopEnv
 from teleop.control.loop import run_episode
 from teleop.learn.policy import PolicyMismatch, ScriptedPolicy

@@ -14,7 +14,7 @@ import pytest
 
 from recorder.annotations import Subtask
 from replay.subtask_edit import EditRefused, SubtaskEdits, even_split
-from replay.viewer_subtasks import _step_from_browser, timeline_html
+from replay.viewer_subtasks import step_from_browser, timeline_html
 from tests import browser as headless
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,9 +41,9 @@ def test_edits_keep_the_subtasks_contiguous():
 
 
 def test_values_from_the_browser_are_checked():
-    assert _step_from_browser(12, 100) == 12 and _step_from_browser(12.0, 100) == 12
+    assert step_from_browser(12, 100) == 12 and step_from_browser(12.0, 100) == 12
     for bad in (12.5, float("nan"), float("inf"), -1, 100, "12", None, True):
-        assert _step_from_browser(bad, 100) is None, bad
+        assert step_from_browser(bad, 100) is None, bad
     bar = timeline_html([Subtask("<b>x</b>", 0, 5)], 5, 2, [])
     assert "<b>x</b>" not in bar and "&lt;b&gt;" in bar  # object names are escaped
 

@@ -1,1 +1,31 @@
-"""Recorded episodes into LeRobot datasets: frames, rendering stream, image statistics, parallel shards."""
+"""Recorded episodes into LeRobot datasets: frames, rendering stream, image statistics, finalized pieces,
+parallel shards. `export_dataset` is the one entry: one process (dataset.py, in pieces) or shards (shards.py)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from replay.export.dataset import ExportOptions, ExportSummary, check_options, export_serial
+from replay.export.shards import export_parallel
+
+
+def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None,
+                   cancel: threading.Event | None = None) -> ExportSummary:
+    """Export the episodes under `paths` into the LeRobot dataset at opts.out: in this process, or with
+    opts.workers > 1 or opts.ray in shards exported in parallel and merged with LeRobot's aggregation.
+
+    cancel: a token (the CLI sets it on Ctrl-C). Once set, or on a KeyboardInterrupt, the
+    export stops: the episode in progress is dropped, the saved ones are finalized and kept
+    (`interrupted` in the summary). An episode being saved is saved whole first.
+    """
+    log = log or (lambda line: print(line, file=sys.stderr))
+    check_options(opts)
+    if opts.workers > 1 or opts.ray is not None:
+        return export_parallel(list(paths), opts, log, cancel)
+    return export_serial(paths, opts, log, cancel)
+
+
+__all__ = ["ExportOptions", "ExportSummary", "export_dataset"]

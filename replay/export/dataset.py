@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 
@@ -32,6 +32,7 @@ from replay.export.frames import (
 )
 from replay.export.lerobot_io import ExportError, dir_size, load_lerobot
 from replay.export.stats import image_stats
+from replay.export.pieces import PIECE_EPISODES, export_in_pieces, is_interrupted
 from replay.export.stream import EpisodeEnd, FrameStream
 from replay.parallel.interrupts import is_cancelled, shielded
 from replay.render import RenderError, warm_up
@@ -73,6 +74,10 @@ class ExportOptions:
     # `observation.environment_state`: the task objects' poses in the robot's base frame (frames.py). When
     # appending, the dataset's own features decide.
     object_state: bool = True
+    # Episodes are written in finalized pieces of this many (replay/export/pieces.py): a killed export
+    # loses at most the piece in progress, and `resume` continues an interrupted one.
+    piece_episodes: int = PIECE_EPISODES
+    resume: bool = False
 
 
 @dataclass
@@ -87,6 +92,7 @@ class ExportSummary:
     cameras: list[str] = field(default_factory=list)
     skipped_failed: int = 0
     skipped_empty: int = 0
+    resumed_from: int = 0  # episodes an interrupted export had already written (--resume)
     interrupted: bool = False
     backend: str = ""
 
@@ -102,6 +108,8 @@ class ExportSummary:
             f"({self.frames / self.fps if self.fps else 0:.1f} s at {self.fps} fps) in {self.seconds:.1f} s "
             f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, {self.dataset_episodes} episode{'s' * (self.dataset_episodes != 1)} in all)"
         )
+        if self.resumed_from:
+            text += f"; resumed after the {self.resumed_from} episode{'s' * (self.resumed_from != 1)} already exported"
         skipped = []
         if self.skipped_failed:
             skipped.append(f"{self.skipped_failed} failed (only successful episodes kept)")
@@ -346,8 +354,15 @@ def check_options(opts: ExportOptions) -> None:
         raise ExportError("a video codec was chosen, but without video there is nothing to encode")
     if not opts.repo_id or not opts.repo_id.strip():
         raise ExportError("repo id must not be empty")
-    if opts.out.exists() and not opts.append:
+    if is_interrupted(opts.out) and not opts.resume:
+        raise ExportError(f"{opts.out} holds an export that was interrupted: add --resume to continue it "
+                          "(or remove the directory)")
+    if opts.resume and (opts.workers > 1 or opts.ray is not None):
+        raise ExportError("--resume continues an export in one process: leave out workers/Ray")
+    if opts.out.exists() and not opts.append and not opts.resume:
         raise ExportError(f"{opts.out} already exists (append the episodes to it, or choose a new directory)")
+    if isinstance(opts.piece_episodes, bool) or not isinstance(opts.piece_episodes, int) or opts.piece_episodes < 1:
+        raise ExportError(f"piece episodes {opts.piece_episodes!r}: expected a whole number of episodes, 1 or more")
     if opts.append and opts.out.exists() and not (opts.out / "meta" / "info.json").is_file():
         raise ExportError(f"cannot append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
     if isinstance(opts.workers, bool) or not isinstance(opts.workers, int) or opts.workers < 1:
@@ -378,9 +393,10 @@ def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]
     return chosen, summary
 
 
-def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None,
-                   cancel: threading.Event | None = None) -> ExportSummary:
-    """Export the episodes under `paths` into the LeRobot dataset at opts.out (see module doc).
+def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callable[[str], None] | None = None,
+                  cancel: threading.Event | None = None) -> ExportSummary:
+    """Export the episodes under `paths` into the LeRobot dataset at opts.out in this process, in finalized
+    pieces (see module doc; `replay.export.export_dataset` chooses this or the parallel shards).
 
     cancel: a token (the CLI sets it on Ctrl-C). Once set, or on a KeyboardInterrupt, the
     export stops: the episode in progress is dropped, the saved ones are finalized and kept
@@ -389,12 +405,30 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     log = log or (lambda line: print(line, file=sys.stderr))
     paths = list(paths)
     check_options(opts)
-    if opts.workers > 1 or opts.ray is not None:
-        from replay.export.shards import export_parallel  # here, not at the top: that module builds on this one
-
-        return export_parallel(paths, opts, log, cancel)
     warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
     chosen, summary = select_episodes(paths, opts, log)
+    t0 = time.perf_counter()
+    logs = [log]  # the first piece's notes (the video decoder) are the export's; the same again are not
+
+    def piece(paths: list[Path], piece_opts: ExportOptions) -> ExportSummary:
+        return _export_piece(paths, piece_opts, logs.pop() if logs else (lambda line: None), cancel)
+
+    parts, summary.resumed_from = export_in_pieces([e.path for e in chosen], opts, piece, log, opts.piece_episodes)
+    for part in parts:
+        summary.episodes += part.episodes
+        summary.frames += part.frames
+        summary.interrupted = summary.interrupted or part.interrupted
+        summary.backend = summary.backend or part.backend
+    summary.seconds = time.perf_counter() - t0
+    summary.dataset_episodes = parts[-1].dataset_episodes if parts else summary.resumed_from
+    summary.bytes = dir_size(opts.out) if opts.out.exists() else 0
+    return summary
+
+
+def _export_piece(paths: list[Path], opts: ExportOptions, log: Callable[[str], None],
+                  cancel: threading.Event | None) -> ExportSummary:
+    """One finalized piece: the episodes `paths` into a new dataset, or appended to opts.out's."""
+    chosen, summary = select_episodes(paths, replace(opts, only_success=False), lambda line: None)
     robot_type = chosen[0].signature[0]
     fps, cameras = summary.fps, summary.cameras
     LeRobotDataset = load_lerobot()  # after the input checks: they answer at once, LeRobot takes seconds to import

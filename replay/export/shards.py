@@ -1,7 +1,7 @@
 """Export in parallel: shards of episodes exported in worker processes or Ray tasks, merged by LeRobot.
 
 Each shard is a contiguous run of the chosen episodes, exported by the ordinary
-single-process export (`export_dataset`) into a dataset of its own under a temporary
+single-process export (`export_serial`) into a dataset of its own under a temporary
 directory beside the output. LeRobot's `aggregate_datasets` then joins the shards in
 order (parquet data re-indexed, videos joined by stream copy, episode metadata, tasks,
 statistics) into the output, so it holds the frames, values and features one process
@@ -34,7 +34,7 @@ from replay.parallel import ClusterError, Runner, WorkerLost, shielded
 from replay.export.dataset import (
     ExportOptions,
     ExportSummary,
-    export_dataset,
+    export_serial,
     select_episodes,
     video_decoder,
     wants_intervention,
@@ -102,7 +102,7 @@ def _export_shard(files: list[Path], opts: ExportOptions, index: int, cancel: th
         if queue is not None:
             queue.put((index, frames))
 
-    return export_dataset(files, replace(opts, on_episode=report), log=lambda line: None, cancel=cancel)
+    return export_serial(files, replace(opts, on_episode=report), log=lambda line: None, cancel=cancel)
 
 
 def _ray_shard(files: list[tuple[str, bytes]], opts: ExportOptions) -> tuple[ExportSummary, bytes]:
@@ -115,7 +115,7 @@ def _ray_shard(files: list[tuple[str, bytes]], opts: ExportOptions) -> tuple[Exp
             path.write_bytes(data)
             paths.append(path)
         out = Path(tmp) / "shard"
-        summary = export_dataset(paths, replace(opts, out=out), log=lambda line: None)
+        summary = export_serial(paths, replace(opts, out=out), log=lambda line: None)
         return summary, (_tar(out) if out.exists() else b"")
 
 

@@ -50,6 +50,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--append", action="store_true", help="add the episodes to the existing dataset at --out")
     p.add_argument(
+        "--resume", action="store_true",
+        help="continue an export that was interrupted (killed, Ctrl-C, a full disk) with the same episodes and "
+        "options: what its finished pieces wrote is kept, the piece in progress is written again",
+    )
+    p.add_argument(
+        "--piece-episodes", default="20", metavar="N",
+        help="episodes per finalized piece (default 20): a killed export loses at most the piece in progress",
+    )
+    p.add_argument(
         "--workers", default="1", metavar="K",
         help="export shards of the episodes in K processes at once, then merge them with LeRobot's "
         "aggregation (default 1: one process). Not with --append",
@@ -72,20 +81,25 @@ def quiet_environment() -> None:
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 encoder: errors only, no banner per video
 
 
-def _workers(text: str) -> int:
-    """--workers K, checked here so a bad value is the one error line (argparse adds its usage)."""
+def _count(text: str, flag: str, what: str) -> int:
+    """A whole number >= 1 for `flag`, checked here so a bad value is the one error line (argparse adds its usage)."""
     try:
-        workers = int(text)
+        value = int(text)
     except ValueError:
-        workers = 0
-    if workers < 1:
-        raise UsageError(f"--workers {text!r}: expected a whole number of processes, 1 or more")
-    return workers
+        value = 0
+    if value < 1:
+        raise UsageError(f"{flag} {text!r}: expected a whole number of {what}, 1 or more")
+    return value
+
+
+def _workers(text: str) -> int:
+    return _count(text, "--workers", "processes")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     quiet_environment()
-    from replay.export.dataset import ExportError, ExportOptions, export_dataset, parse_cameras, parse_image_size
+    from replay.export.dataset import ExportError, ExportOptions, parse_cameras, parse_image_size
+    from replay.export import export_dataset
 
     try:
         opts = ExportOptions(
@@ -103,6 +117,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             workers=_workers(args.workers),
             ray=args.ray,
             object_state=not args.no_object_state,
+            resume=args.resume,
+            piece_episodes=_count(args.piece_episodes, "--piece-episodes", "episodes"),
         )
         with cancel_on_interrupt() as cancel:  # Ctrl-C: the episode being saved ends whole, the saved ones stay
             summary = export_dataset(args.paths, opts, cancel=cancel)

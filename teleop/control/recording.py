@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import mujoco
 
@@ -37,9 +37,7 @@ from replay import VerifyResult, verify_file
 from scenes.errors import first_line
 from teleop.control.controller import Controller
 from teleop.control.record_row import RowFiller
-
-if TYPE_CHECKING:  # annotations only: the session imports this module
-    from teleop.control.session import Session
+from teleop.control.session import Session
 
 Verify = Literal["sync", "background", "off"]
 VERIFY_MODES = ("sync", "background", "off")
@@ -78,7 +76,7 @@ class Recorder:
 
     def __init__(
         self,
-        session: "Session",
+        session: Session,
         directory: str | Path,
         formats: Sequence[str] = ("mcap",),
         verify: Verify = "sync",

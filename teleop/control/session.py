@@ -2,9 +2,11 @@
 
 The session builds the scene for a seed and the `Controller` that runs its
 ticks, turns episode events from devices (start, save, discard, reset) into
-calls on an attached `Recorder`, and offers devices the read-only view they may
+calls on an attached recorder, and offers devices the read-only view they may
 look at (`devices.view.SessionView`). Recording is the Recorder's business; the
 loop that polls devices and paces ticks is `teleop.control.loop.run_episode`.
+`AttachedRecorder` names what the session asks of `teleop.control.recording.Recorder`,
+so that this module need not import that one (which imports this one).
 """
 
 from __future__ import annotations
@@ -13,18 +15,32 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import mujoco
 import numpy as np
 
 from devices.command import Command
 from scenes import RobotSpec, Scene, build_scene, load_robot
-from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, physics_split
+from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, TickObserver, physics_split
 from teleop.errors import SessionError
 
-if TYPE_CHECKING:  # annotations only: the recorder module imports this one
-    from teleop.control.recording import Recorder
+
+class AttachedRecorder(TickObserver, Protocol):
+    """What the session calls on its recorder (the Recorder attaches itself): episode events and ticks."""
+
+    @property
+    def recording(self) -> bool:
+        """An episode is open."""
+        ...
+
+    def start(self) -> None: ...
+
+    def save(self, complete: bool = True) -> list[Path]:
+        """Close the open episode; its files."""
+        ...
+
+    def discard(self) -> None: ...
 
 
 class Session:
@@ -50,7 +66,7 @@ class Session:
         self.dt = 1.0 / self.control_hz  # s per control tick
         self.substeps, self.timestep = physics_split(self.control_hz)
         self.stats = ControlStats()
-        self.recorder: Recorder | None = None
+        self.recorder: AttachedRecorder | None = None
         self.load(seed)
 
     # --- scene lifecycle -----------------------------------------------------
@@ -71,13 +87,13 @@ class Session:
             self.recorder.save()
         self.load(self.seed + 1 if seed is None else seed)
 
-    def attach(self, recorder: "Recorder") -> None:
+    def attach(self, recorder: AttachedRecorder) -> None:
         """Let `recorder` observe the ticks (one at a time)."""
         if self.recorder is not None and self.recorder is not recorder:
             raise SessionError("the session already has a recorder attached")
         self.recorder = recorder
 
-    def detach(self, recorder: "Recorder") -> None:
+    def detach(self, recorder: AttachedRecorder) -> None:
         if self.recorder is recorder:
             self.recorder = None
 

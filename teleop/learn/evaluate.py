@@ -35,7 +35,6 @@ from replay.annotate import FAILURE_REASONS, progress_of
 from replay.export.frames import feature_key
 from scenes import RobotSpec
 from scenes.errors import TeleopError
-from teleop.gym import make_env
 from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
 from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
 from teleop.control.recording import Recorder, arm_metas
@@ -222,12 +221,12 @@ def make_eval_env(opts: EvalOptions) -> TeleopEnv:
         common["image_size"] = opts.image_size
     cameras = None if opts.cameras is None else list(opts.cameras)
     if cameras and any(c.startswith(IMAGE_PREFIX) for c in cameras):
-        probe = make_env(opts.scene, opts.robot, cameras=(), **common)
+        probe = TeleopEnv(opts.scene, opts.robot, cameras=(), **common)
         try:
             cameras = camera_names(cameras, scene_cameras(probe))
         finally:
             probe.close()
-    return make_env(opts.scene, opts.robot, cameras=cameras, **common)
+    return TeleopEnv(opts.scene, opts.robot, cameras=cameras, **common)
 
 
 def _check(opts: EvalOptions) -> None:

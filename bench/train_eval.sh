@@ -1,0 +1,113 @@
+#!/usr/bin/env bash
+# The loop, measured (issue 21): a policy trained on the tool's data, evaluated on 50 new seeds.
+#
+#   bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--work DIR]
+#
+#   1. K source demos (seeds 0..K-1) from the task's solving script (--humanlike: the same script with a
+#      person's pauses, overshoots and corrections, bench/humanlike.py);
+#   2. `teleop generate` N demos from them (seeds from 100, 2 local workers);
+#   3. `teleop export`: robot state, the objects' poses (observation.environment_state) and joint
+#      actions; no images (--images: front and wrist cameras at 96x96 as PNG frames);
+#   4. `lerobot-train` ACT with the hyper-parameters below, on DEVICE (cpu; cuda where there is one);
+#   5. `teleop eval` on seeds 1000-1049 (its JSON in WORK/eval.json).
+# Prints one JSON object on stdout: task, demos, sources, humanlike, images, steps, train_seconds,
+# success_rate, ci95, failure_breakdown. Progress and the tools' logs go to stderr. Steps already done in
+# WORK are not redone (delete WORK to start over).
+set -euo pipefail
+usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--work DIR]"
+task=${1:?$usage}
+shift
+demos=200
+steps=3000
+sources=3
+humanlike=0
+images=0
+work=""
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --demos) demos=${2:?$usage}; shift 2 ;;
+        --steps) steps=${2:?$usage}; shift 2 ;;
+        --sources) sources=${2:?$usage}; shift 2 ;;
+        --humanlike) humanlike=1; shift ;;
+        --images) images=1; shift ;;
+        --work) work=${2:?$usage}; shift 2 ;;
+        *) echo "train_eval.sh: unknown option $1 ($usage)" >&2; exit 2 ;;
+    esac
+done
+case "$task" in
+    lift) script=lift_pick.json ;;
+    stack) script=stack_pick.json ;;
+    pick_place) script=pick_place.json ;;
+    *) script=$task.json ;;
+esac
+root=$(cd "$(dirname "$0")/.." && pwd)
+[ -f "$root/scenes/scripts/$script" ] || { echo "train_eval.sh: no solving script scenes/scripts/$script for task $task" >&2; exit 2; }
+work=${work:-$root/out/e2e/$task-d$demos-s$sources$([ $humanlike = 1 ] && echo h)$([ $images = 1 ] && echo i)}
+device=${DEVICE:-cpu}
+python=${PYTHON:-$root/.venv/bin/python}
+teleop=${TELEOP:-$root/.venv/bin/teleop}
+train=${LEROBOT_TRAIN:-$root/.venv/bin/lerobot-train}
+export HF_HUB_OFFLINE=1 MUJOCO_GL=${MUJOCO_GL:-egl} PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
+mkdir -p "$work"
+cd "$work"
+say() { echo "train_eval.sh [$task]: $*" >&2; }
+
+if [ ! -d src ]; then
+    say "$sources source demos$([ $humanlike = 1 ] && echo ' (human-like)')"
+    mkdir -p src.tmp
+    for ((s = 0; s < sources; s++)); do
+        src_script="$root/scenes/scripts/$script"
+        if [ $humanlike = 1 ]; then
+            "$python" "$root/bench/humanlike.py" "$src_script" --seed "$s" > "src.tmp/script_$s.json"
+            src_script="$work/src.tmp/script_$s.json"
+        fi
+        "$teleop" run --scene "$task" --device "script:$src_script" --seed "$s" --record src.tmp >&2
+    done
+    mv src.tmp src
+fi
+if [ ! -d gen ]; then
+    say "generating $demos demos"
+    "$teleop" generate src --out gen.tmp --num "$demos" --seed 100 --workers 2 >&2
+    mv gen.tmp gen
+fi
+if [ ! -d ds ]; then
+    say "exporting"
+    if [ $images = 1 ]; then
+        # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
+        "$teleop" export gen --out ds --repo-id "local/$task" --cameras front,wrist --image-size 96x96 --no-video >&2
+    else
+        "$teleop" export gen --out ds --repo-id "local/$task" --cameras none >&2
+    fi
+fi
+if [ ! -f train_seconds ]; then
+    say "training ACT for $steps steps on $device"
+    rm -rf train
+    t0=$(date +%s)
+    # ACT on the robot state and the objects' poses: a small transformer (2 encoder layers, width 256),
+    # chunks of 20 actions (0.67 s at 30 Hz) of which 10 are executed before the next inference.
+    "$train" --dataset.repo_id="local/$task" --dataset.root="$work/ds" --policy.type=act --policy.device="$device" \
+        --policy.push_to_hub=false --policy.pretrained_backbone_weights=null \
+        --policy.dim_model=256 --policy.n_heads=4 --policy.dim_feedforward=1024 --policy.n_encoder_layers=2 \
+        --policy.n_vae_encoder_layers=2 --policy.chunk_size=20 --policy.n_action_steps=10 --policy.optimizer_lr=1e-4 \
+        --batch_size="${BATCH:-64}" --steps="$steps" --num_workers=0 --wandb.enable=false --save_freq="$steps" \
+        --log_freq=500 --output_dir="$work/train" 2>&1 | tr '\r' '\n' | sed -u -E 's/^Training:.*\](INFO )/\1/' \
+        | grep --line-buffered -v "^Training:" >&2 || true
+    [ -d "$work/train/checkpoints/last/pretrained_model" ] || { echo "train_eval.sh: lerobot-train made no checkpoint" >&2; exit 1; }
+    echo $(( $(date +%s) - t0 )) > train_seconds
+fi
+if [ ! -f eval.json ]; then
+    say "evaluating on seeds 1000-1049"
+    "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --episodes 50 --seed 1000 \
+        --device "$device" --json > eval.json.tmp
+    mv eval.json.tmp eval.json
+fi
+"$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$steps" "$(cat train_seconds)" <<'EOF'
+import json, sys
+task, demos, sources, humanlike, images, steps, seconds = sys.argv[1:]
+report = json.load(open("eval.json"))
+print(json.dumps({
+    "task": task, "demos": int(demos), "sources": int(sources), "humanlike": humanlike == "1", "images": images == "1",
+    "steps": int(steps), "train_seconds": int(seconds), "success_rate": report["success_rate"], "ci95": report["ci95"],
+    "failure_breakdown": report.get("failure_breakdown", {}),
+}))
+EOF
