@@ -131,6 +131,17 @@ def test_a_policy_for_another_robot_is_one_line(trained):
     assert_one_line_error(result, "observation.state", "so101")
 
 
+def test_the_checkpoint_reads_the_objects_state_and_another_task_cannot_supply_it(trained):
+    """The export's default environment state (the cube's pose) is an input the trained ACT takes;
+    a scene whose objects differ (stack: two cubes) is named in one line before torch loads."""
+    import json
+
+    config = json.loads((trained["model"] / "config.json").read_text())
+    assert config["input_features"]["observation.environment_state"]["shape"] == [7]
+    result = run_cli("eval", "--policy", str(trained["model"]), "--scene", "stack", "--episodes", "1")
+    assert_one_line_error(result, "observation.environment_state", "stack")
+
+
 def test_a_missing_folder_and_bad_episodes_are_one_line(tmp_path):
     assert_one_line_error(run_cli("eval", "--policy", str(tmp_path / "nope")), "no such policy folder")
     assert_one_line_error(run_cli("eval", "--policy", str(tmp_path)), "no config.json")
