@@ -142,7 +142,9 @@ async def _ws_first_message(url: str, **kwargs) -> bytes | str:
 
 def test_the_websocket_without_the_token_is_refused_and_with_it_accepted(server, token):
     ws_url = server.url.replace("http://", "ws://")
-    for url, kwargs in ((ws_url, {}), (ws_url + "/teleop/input", {}), (ws_url + "/?token=wrong-wrong-wrong", {})):
+    evil = {"origin": "https://evil.example"}  # another site's page, even with the token (viser's websocket too)
+    for url, kwargs in ((ws_url, {}), (ws_url + "/teleop/input", {}), (ws_url + "/?token=wrong-wrong-wrong", {}),
+                        (ws_url + "/?token=" + token, evil), (ws_url + "/teleop/input?token=" + token, evil)):
         with pytest.raises(InvalidStatus) as refused:
             headless.run_async(_ws_first_message(url, **kwargs))
         assert refused.value.response.status_code == 403

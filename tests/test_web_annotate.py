@@ -14,7 +14,7 @@ import pytest
 
 from recorder.annotations import Subtask
 from replay.subtask_edit import EditRefused, SubtaskEdits, even_split
-from replay.viewer_subtasks import step_from_browser, timeline_html
+from teleop.web.replay_subtasks import step_from_browser, timeline_html
 from tests import browser as headless
 
 REPO = Path(__file__).resolve().parents[1]

@@ -42,8 +42,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="compare every re-simulated state bit for bit; exit 0 only when exact")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--serve", action="store_true", help="open the episode in the browser viewer instead")
-    p.add_argument("--host", default="127.0.0.1", help="viewer host (default 127.0.0.1)")
+    p.add_argument("--host", default="127.0.0.1", help="viewer host (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="viewer port (default 8080)")
+    p.add_argument("--token", default=None, metavar="TEXT",
+                   help="with --serve: the secret a browser must bring (the printed URL carries it as ?token=...); "
+                        "default: $TELEOP_TOKEN, else a random one when --host is not loopback (loopback needs none)")
+    p.add_argument("--no-token", action="store_true",
+                   help="with --serve: serve a non-loopback --host with no token "
+                        "(trusted networks only; prints a warning)")
     p.set_defaults(func=cmd_replay)
 
 
@@ -114,6 +120,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise UsageError("--verify re-simulates: use it with --mode action")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port}: must be 0..65535")
+    if (args.token is not None or args.no_token) and not args.serve:
+        raise UsageError("--token and --no-token are for the viewer: add --serve")
+    token = None
+    if args.serve:
+        from teleop.web.access import resolve_token
+
+        token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     episode = _load(args.path)
     try:
         model = episode.build_model()
@@ -121,12 +134,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.serve:
         try:
-            from replay.viewer import serve_episode
+            from teleop.web.replay_viewer import serve_episode
         except ImportError as exc:
             raise UsageError(f"the episode viewer is not available: {exc}") from None
         # Ctrl-C and SIGTERM stop the viewer, even when started with SIGINT ignored (as a background job).
         with cancel_on_interrupt(even_if_ignored=True) as stop:
-            return int(serve_episode(episode, args.host, args.port, stop=stop) or 0)
+            return int(serve_episode(episode, args.host, args.port, token=token, no_token=args.no_token, stop=stop))
 
     out: dict = {"path": str(args.path), "mode": mode, "steps": episode.steps, "seconds": episode.seconds,
                  "truncated": episode.truncated}

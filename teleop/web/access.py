@@ -17,45 +17,45 @@ Where the token travels:
 - scripts may put it in the query of any request, websockets included.
 
 A request without the right token gets HTTP 403, websocket upgrades included,
-before viser sees it. The check is installed by wrapping the one call through
-which viser starts its server (`websockets.asyncio.server.serve`, a public
-`websockets` API) while `ViserServer` starts, so viser's own serving code is
-used unchanged; the same wrapper routes extra websocket paths (the page's
-input channel) to our handlers on the same port, so one SSH tunnel is enough.
+before viser sees it; so does a browser's websocket opened by another site's
+page (its Origin is not this server), viser's own included: on an open loopback
+server that is what keeps a web page from driving the session or saving files.
+Both servers, `teleop serve` and the replay viewer, start through this gate.
+The check is installed by wrapping the one call through which viser starts
+its server (`websockets.asyncio.server.serve`) while `ViserServer` starts
+(teleop.web.viser_compat.wrapping_serve), so viser's own serving code is used unchanged;
+the same wrapper routes extra websocket paths (the page's input channel) to
+our handlers on the same port, so one SSH tunnel is enough.
 If a viser release stopped going through that call, starting fails rather than
 serving without the check.
 """
 
 from __future__ import annotations
 
-import gzip
 import hmac
 import http
 import inspect
 import os
 import re
 import secrets
-import threading
-from collections.abc import Awaitable, Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TypeVar
 from urllib.parse import parse_qs, quote, urlsplit
 
-import websockets.asyncio.server
 from websockets.asyncio.server import ServerConnection
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from teleop.errors import UsageError
 from teleop.web.net import is_loopback
+from teleop.web.viser_compat import INDEX_PATHS, Handler, ProcessRequest, with_head_script, wrapping_serve
 
 TOKEN_ENV = "TELEOP_TOKEN"
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,128}")  # goes into URLs and cookies unescaped
 COOKIE_PREFIX = "teleop_token_"
 
-Handler = Callable[[ServerConnection], Awaitable[None]]
-ProcessRequest = Callable[[ServerConnection, Request], "Response | None | Awaitable[Response | None]"]
 T = TypeVar("T")
 
 
@@ -151,29 +151,6 @@ def html_response(body: bytes) -> Response:
     return Response(http.HTTPStatus.OK, "OK", headers, body)
 
 
-INDEX_PATHS = ("/", "/index.html")
-
-
-def with_head_script(response: Response, script: bytes, cache: dict) -> Response:
-    """viser's page with `script` first in its <head> (before viser's own code runs), same encoding."""
-    if "text/html" not in response.headers.get("Content-Type", ""):
-        return response
-    key = bytes(response.body)
-    if key not in cache:
-        zipped = response.headers.get("Content-Encoding", "") == "gzip"
-        html = gzip.decompress(key) if zipped else key
-        head = html.find(b"<head>")
-        if head < 0:
-            cache[key] = key
-        else:
-            html = html[: head + 6] + script + html[head + 6:]
-            cache[key] = gzip.compress(html) if zipped else html
-    body = cache[key]
-    headers = Headers([(k, v) for k, v in response.headers.raw_items() if k.lower() != "content-length"])
-    headers["Content-Length"] = str(len(body))  # websockets' Headers add a value on assignment
-    return Response(response.status_code, response.reason_phrase, headers, body)
-
-
 def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler],
           pages: Mapping[str, bytes] | None = None, head: bytes | None = None) -> ProcessRequest:
     """viser's `process_request` behind the token check; our websocket paths checked for Origin too,
@@ -183,12 +160,12 @@ def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler
 
     async def process_request(connection: ServerConnection, request: Request) -> Response | None:
         if not gate.allows(request):
-            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: this session needs its token "
-                                      "(open the URL that teleop serve printed, with ?token=...)\n")
+            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: this server needs its token "
+                                      "(open the URL that teleop printed, with ?token=...)\n")
         path = urlsplit(request.path).path
+        if _is_upgrade(request) and not same_origin(request):  # viser's websocket too: it drives and saves
+            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")
         if _is_upgrade(request) and path in routes:
-            if not same_origin(request):
-                return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")
             return None
         if not _is_upgrade(request) and pages and path in pages:
             response = html_response(pages[path])
@@ -218,29 +195,14 @@ def route(inner: Handler, routes: Mapping[str, Handler]) -> Handler:
     return handler
 
 
-_SERVE_LOCK = threading.Lock()  # one guarded start at a time: the wrapper is process-wide while it lasts
-
-
 @contextmanager
 def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None,
                    head: bytes | None = None) -> Iterator[list[bool]]:
-    """While open, servers started through websockets' `serve` get the gate and routes; yields
-    a list that gains an entry per server so wrapped (empty: the check was not installed)."""
-    module = websockets.asyncio.server
-    original = module.serve
-    wrapped: list[bool] = []
-
-    def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
-        wrapped.append(True)
-        return original(route(handler, routes), *args,
-                        process_request=guard(gate, process_request, routes, pages, head), **kwargs)
-
-    with _SERVE_LOCK:
-        module.serve = serve
-        try:
-            yield wrapped
-        finally:
-            module.serve = original
+    """While open, servers viser starts get the gate and routes; yields a list that gains an entry
+    per server so wrapped (empty: the check was not installed)."""
+    with wrapping_serve(lambda handler, process_request: (
+            route(handler, routes), guard(gate, process_request, routes, pages, head))) as wrapped:
+        yield wrapped
 
 
 def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,

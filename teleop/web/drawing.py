@@ -1,5 +1,9 @@
 """The 3D view: the MuJoCo scene, target and actual end-effector markers, and the gizmos.
 
+The camera and the markers (`place_camera`, `Markers`) are shared with the
+replay viewer (teleop.web.replay_viewer), so a recorded episode looks as it
+did live.
+
 Drawing never reads the physics MjData: it copies the latest Snapshot's qpos
 into its own MjData on its own model copy and runs mj_kinematics there. Poses
 go out through mjviser's batched handles (one message per group of bodies),
@@ -40,6 +44,44 @@ def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
     return abs(abs(float(np.dot(a, b))) - 1.0) < 1e-8
 
 
+def place_camera(server: viser.ViserServer) -> None:
+    """viser's initial camera (world frame, z up) for every page of ours; the browser tests
+    project world points through the same numbers."""
+    server.initial_camera.position = CAMERA_POSITION
+    server.initial_camera.look_at = CAMERA_LOOK_AT
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+    server.initial_camera.fov = CAMERA_FOV
+
+
+class Markers:
+    """Per arm: the target frame (axes), the actual end effector (an orange ball) and a red line
+    between them, in the world frame (m)."""
+
+    def __init__(self, server: viser.ViserServer, n_arms: int) -> None:
+        n = n_arms
+        self.target_axes = server.scene.add_batched_axes(
+            "/markers/targets", batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)), batched_positions=np.zeros((n, 3)),
+            axes_length=0.05, axes_radius=0.003,
+        )
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=0.012)
+        self.ee_balls = server.scene.add_batched_meshes_simple(
+            "/markers/ee", ball.vertices, ball.faces, batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)),
+            batched_positions=np.zeros((n, 3)), batched_colors=np.tile(EE_COLOR, (n, 1)).astype(np.uint8),
+            lod="off", cast_shadow=False, receive_shadow=False,
+        )
+        self.error_lines = server.scene.add_line_segments(
+            "/markers/error", points=np.zeros((n, 2, 3)), colors=np.tile(ERROR_COLOR, (n, 2, 1)).astype(np.uint8),
+            thickness=3.0, thickness_units="screen",
+        )
+
+    def draw(self, targets: np.ndarray, ee: np.ndarray) -> None:
+        """targets: (n_arms, 7) position + wxyz; ee: (n_arms, >=3), the position first."""
+        self.target_axes.batched_positions = targets[:, :3]
+        self.target_axes.batched_wxyzs = targets[:, 3:7]
+        self.ee_balls.batched_positions = ee[:, :3]
+        self.error_lines.points = np.stack([ee[:, :3], targets[:, :3]], axis=1)
+
+
 class SceneDrawer(LoopThread):
     """Pushes the simulation's poses to every browser, up to `max_hz` updates a second."""
 
@@ -61,27 +103,10 @@ class SceneDrawer(LoopThread):
         self._generation = snap.generation
         self.model = copy.copy(snap.model)
         self.data = mujoco.MjData(self.model)
-        server.initial_camera.position = CAMERA_POSITION
-        server.initial_camera.look_at = CAMERA_LOOK_AT
-        server.initial_camera.up = (0.0, 0.0, 1.0)
-        server.initial_camera.fov = CAMERA_FOV
+        place_camera(server)
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False  # keep world coordinates: gizmos and markers live there
-        n = len(snap.targets)
-        self.target_axes = server.scene.add_batched_axes(
-            "/markers/targets", batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)), batched_positions=np.zeros((n, 3)),
-            axes_length=0.05, axes_radius=0.003,
-        )
-        ball = trimesh.creation.icosphere(subdivisions=2, radius=0.012)
-        self.ee_balls = server.scene.add_batched_meshes_simple(
-            "/markers/ee", ball.vertices, ball.faces, batched_wxyzs=np.tile([1.0, 0, 0, 0], (n, 1)),
-            batched_positions=np.zeros((n, 3)), batched_colors=np.tile(EE_COLOR, (n, 1)).astype(np.uint8),
-            lod="off", cast_shadow=False, receive_shadow=False,
-        )
-        self.error_lines = server.scene.add_line_segments(
-            "/markers/error", points=np.zeros((n, 2, 3)), colors=np.tile(ERROR_COLOR, (n, 2, 1)).astype(np.uint8),
-            thickness=3.0, thickness_units="screen",
-        )
+        self.markers = Markers(server, len(snap.targets))
         self.gizmos: list[viser.TransformControlsHandle] = []
         if gizmo is not None:
             for arm, (pos, quat) in enumerate(snap.targets):
@@ -156,12 +181,8 @@ class SceneDrawer(LoopThread):
         return True
 
     def _draw_markers(self, snap: Snapshot) -> None:
-        targets = np.array([np.concatenate(t) for t in snap.targets])
-        ee = np.array([np.concatenate(e) for e in snap.ee])
-        self.target_axes.batched_positions = targets[:, :3]
-        self.target_axes.batched_wxyzs = targets[:, 3:]
-        self.ee_balls.batched_positions = ee[:, :3]
-        self.error_lines.points = np.stack([ee[:, :3], targets[:, :3]], axis=1)
+        self.markers.draw(np.array([np.concatenate(t) for t in snap.targets]),
+                          np.array([np.concatenate(e) for e in snap.ee]))
 
     def _sync_gizmos(self, snap: Snapshot) -> None:
         for arm, handle in enumerate(self.gizmos):

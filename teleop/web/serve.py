@@ -19,7 +19,7 @@ from replay.parallel import shielded
 from teleop.control.session import Session
 from teleop.web.access import resolve_token
 from teleop.web.app import WebApp
-from teleop.web.net import check_port_free, exposure_warning, is_loopback
+from teleop.web.net import check_port_free, exposure_warning, remote_hint
 
 if TYPE_CHECKING:  # annotations only
     from teleop.learn.policy import Policy
@@ -105,8 +105,9 @@ def serve(
     if takeover is not None:
         log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
     log(f"open {app.page_url} in a browser (Ctrl-C to stop)")
-    if not is_loopback(host) and host in ("0.0.0.0", "", "::"):
-        log("  (from another machine: this machine's name or address in place of 127.0.0.1)")
+    hint = remote_hint(host)
+    if hint:
+        log(hint)
 
     try:
         while not app.wait(0.2):

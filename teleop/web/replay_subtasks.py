@@ -10,6 +10,9 @@ sidecar file (`recorder.annotations.write_subtasks`, by "human").
 Every value from the browser is checked here before it is used (a dropdown
 value must be one of its options, a step a whole number inside the episode),
 and a refused edit says why in the panel: nothing raises into viser's threads.
+The file is written only on the Save button's click from a page: an event that
+came over viser's websocket, which the viewer serves behind the token gate
+(teleop.web.access, teleop.web.replay_viewer).
 """
 
 from __future__ import annotations
@@ -125,7 +128,7 @@ class SubtaskPanel:
         self.remove_btn.on_click(lambda _: self._edit(self._remove))
         self.add_btn.on_click(lambda _: self._edit(self._add))
         self.object_btn.on_click(lambda _: self._edit(self._set_object))
-        self.save_btn.on_click(lambda _: self.save())
+        self.save_btn.on_click(self._on_save)
         self._refresh(select=0)
 
     # --- showing --------------------------------------------------------------------------------
@@ -258,6 +261,11 @@ class SubtaskPanel:
             self._refresh(sync_step=False)
         if moved:
             self.jump(step)
+
+    def _on_save(self, event) -> None:
+        if event.client_id is None:  # only a page's click (past the gate) writes the file
+            return
+        self.save()
 
     def save(self) -> None:
         """Write the sidecar file (by "human"); a failure is shown, not raised."""

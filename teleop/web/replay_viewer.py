@@ -5,11 +5,13 @@ restoring its recorded state (mj_setState + mj_kinematics, nothing is
 re-simulated), so what you scrub through is exactly what was recorded. The
 target and actual end-effector poses are drawn as in the live session.
 The episode's subtasks are drawn under the timeline and edited and saved in
-the Subtasks folder (replay/viewer_subtasks.py).
+the Subtasks folder (teleop/web/replay_subtasks.py).
 
-This module sits under `replay` and so does not import `teleop`: errors are
-printed as one line and returned as exit code 2, the way the CLI reports
-user errors.
+The viewer serves behind the session's gate (teleop.web.access): a token off
+loopback, HTTP 403 and refused websockets without it, the per-port cookie and
+the Origin check. Its page can write the subtask file, and it does so only from
+a panel event, which arrives over viser's websocket and so past that gate.
+Camera and markers are the live session's (teleop.web.drawing).
 """
 
 from __future__ import annotations
@@ -18,22 +20,19 @@ import copy
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import mujoco
-import numpy as np
 
 from replay.episode import Episode, EpisodeError
-from replay.listen import ListenError, check_port_free, is_loopback
-from replay.viewer_subtasks import SubtaskPanel
-from scenes.errors import TeleopError
+from teleop.errors import UsageError
+from teleop.web.access import Gate, resolve_token, start_guarded, url_with_token
+from teleop.web.drawing import Markers, place_camera
+from teleop.web.net import check_port_free, exposure_warning, page_url, remote_hint
+from teleop.web.replay_subtasks import SubtaskPanel
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
-CAMERA_POSITION = (1.45, -1.05, 0.95)
-CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
-
-
-class ServeError(TeleopError):
-    """The viewer cannot start (port taken, bad host, empty episode); one line for the user."""
+VIEWER_REACH = "see this episode and overwrite its subtask file"  # for the --no-token warning
 
 
 class EpisodeViewer:
@@ -43,7 +42,7 @@ class EpisodeViewer:
         from mjviser import ViserMujocoScene
 
         if episode.steps == 0:
-            raise ServeError(f"{episode.path}: the episode has no steps to show")
+            raise UsageError(f"{episode.path}: the episode has no steps to show")
         self.server = server
         self.episode = episode
         self.model = copy.copy(episode.build_model())
@@ -54,18 +53,11 @@ class EpisodeViewer:
         self.speed = 1.0
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        server.initial_camera.position = CAMERA_POSITION
-        server.initial_camera.look_at = CAMERA_LOOK_AT
-        server.initial_camera.up = (0.0, 0.0, 1.0)
+        place_camera(server)
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False
         n_arms = episode.ee_target.shape[1] if episode.ee_target.ndim == 3 else 0
-        self.targets = server.scene.add_batched_axes(
-            "/markers/targets", batched_wxyzs=np.tile([1.0, 0, 0, 0], (n_arms, 1)),
-            batched_positions=np.zeros((n_arms, 3)), axes_length=0.05, axes_radius=0.003)
-        self.ee_lines = server.scene.add_line_segments(
-            "/markers/error", points=np.zeros((n_arms, 2, 3)), colors=np.tile((255, 60, 60), (n_arms, 2, 1)).astype(np.uint8),
-            thickness=3.0, thickness_units="screen")
+        self.markers = Markers(server, n_arms) if n_arms else None
         self.subtasks = SubtaskPanel(server.gui, episode, self.model, self.dt, current_step=lambda: self.step,
                                      jump=self.show)
         self._build_gui()
@@ -117,10 +109,8 @@ class EpisodeViewer:
             self.step = step
             mujoco.mj_setState(self.model, self.data, ep.state[step], mujoco.mjtState.mjSTATE_INTEGRATION)
             mujoco.mj_kinematics(self.model, self.data)
-            if ep.ee_target.ndim == 3 and ep.ee_target.shape[1]:
-                self.targets.batched_positions = ep.ee_target[step, :, :3]
-                self.targets.batched_wxyzs = ep.ee_target[step, :, 3:7]
-                self.ee_lines.points = np.stack([ep.ee_pose[step, :, :3], ep.ee_target[step, :, :3]], axis=1)
+            if self.markers is not None:
+                self.markers.draw(ep.ee_target[step], ep.ee_pose[step])
             self.scene.update_from_mjdata(self.data)
             self.server.flush()  # mjviser flushes inside its atomic block, too early for viser's sender
             if int(self.slider.value) != step:
@@ -153,36 +143,43 @@ class EpisodeViewer:
         self._stop.set()
 
 
-def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080,
-                  stop: threading.Event | None = None) -> int:
+def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080, token: str | None = None,
+                  no_token: bool = False, stop: threading.Event | None = None,
+                  log: Callable[[str], None] | None = None) -> int:
     """Serve `episode` on host:port until Ctrl-C (a KeyboardInterrupt) or `stop` is set (the CLI's
-    token, set on Ctrl-C and SIGTERM); returns the exit code (2 for a user error)."""
+    token, set on Ctrl-C and SIGTERM); returns 0. A user error (bad token or port, empty episode)
+    raises UsageError.
+
+    token / no_token: as for `teleop serve` (teleop.web.access.resolve_token): a token is
+    required off loopback (random unless given or in TELEOP_TOKEN), and the printed URL carries it.
+    """
     import viser
 
+    log = log or (lambda line: print(line, flush=True))
+    token = resolve_token(host, token, no_token)
+    check_port_free(host, port)
+    server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop replay", verbose=False),
+                           lambda started: started.stop(), Gate(token, port), routes={})
     try:
-        try:
-            check_port_free(host, port)
-        except ListenError as exc:
-            raise ServeError(str(exc)) from None
-        server = viser.ViserServer(host=host, port=port, label="teleop replay", verbose=False)
-        if server.get_port() != port:
-            server.stop()
-            raise ServeError(f"port {port} is already in use on {host}; pass --port N")
-        try:
-            server.gui.configure_theme(show_logo=False, show_share_button=False)
-            server.gui.main_panel.dock_right()
-            viewer = EpisodeViewer(server, episode)
-        except BaseException:
-            server.stop()
-            raise
-    except (ServeError, EpisodeError) as exc:
-        print(f"teleop replay: error: {exc}", file=sys.stderr)
-        return 2
-    if not is_loopback(host):
-        print(f"warning: listening on {host}:{port}: anyone who can reach this port can see this episode", file=sys.stderr)
-    shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-    print(f"open http://{shown}:{port} in a browser to view {episode.path.name} (Ctrl-C to stop)", flush=True)
-    if stop is not None:  # the token ends the play loop
+        if server.get_port() != port:  # someone took it between our check and viser's bind
+            raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
+        server.gui.configure_theme(show_logo=False, show_share_button=False)
+        server.gui.main_panel.dock_right()
+        viewer = EpisodeViewer(server, episode)
+    except EpisodeError as exc:
+        server.stop()
+        raise UsageError(str(exc)) from None
+    except BaseException:
+        server.stop()
+        raise
+    warning = exposure_warning(host, port, VIEWER_REACH) if token is None else None
+    if warning:
+        print(warning, file=sys.stderr)
+    log(f"open {url_with_token(page_url(host, port), token)} in a browser to view {episode.path.name} (Ctrl-C to stop)")
+    hint = remote_hint(host)
+    if hint:
+        log(hint)
+    if stop is not None:  # the cancellation token ends the play loop
         threading.Thread(target=lambda: (stop.wait(), viewer.stop()), name="viewer-stop", daemon=True).start()
     try:
         viewer.run()
