@@ -1,0 +1,1 @@
+"""The library's mesh objects and articulated fixtures, and the script that makes them."""
