@@ -415,3 +415,75 @@ def test_only_the_command_line_installs_signal_handlers(tmp_path):
         for line in signal_handler_calls(path)
     ]
     assert not found, "only teleop/cli/ installs signal handlers (teleop/cli/signals.py):\n" + "\n".join(found)
+
+
+VISER_COMPAT = Path("teleop") / "web" / "viser_compat.py"
+
+
+def viser_internals_touched(path: Path) -> list[str]:
+    """Where a file relies on viser's or websockets' internals: a private viser module or name
+    (`viser._messages`, `from viser import _x`, `viser._x` as an attribute), a client's
+    `_websock_connection`, or websockets' modules as objects to patch (`import websockets...`,
+    assigning or setattr on them, `patch("websockets....")`)."""
+    found: list[str] = []
+
+    def rooted_at(node: ast.AST, root: str) -> bool:
+        while isinstance(node, ast.Attribute):
+            node = node.value
+        return isinstance(node, ast.Name) and node.id == root
+
+    def private(dotted: str) -> bool:
+        return any(part.startswith("_") for part in dotted.split(".")[1:])
+
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        line = getattr(node, "lineno", 0)
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                top = alias.name.split(".")[0]
+                if (top == "viser" and private(alias.name)) or top == "websockets":
+                    found.append(f"{line}: import {alias.name}")
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "viser":
+            if private(node.module) or any(a.name.startswith("_") for a in node.names):
+                found.append(f"{line}: from {node.module} import {', '.join(a.name for a in node.names)}")
+        elif isinstance(node, ast.Attribute):
+            if node.attr.startswith("_websock") or (node.attr.startswith("_") and rooted_at(node.value, "viser")):
+                found.append(f"{line}: .{node.attr}")
+        elif isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Attribute) and rooted_at(t, "websockets") for t in targets):
+                found.append(f"{line}: assigns to websockets")
+        elif isinstance(node, ast.Call) and node.args:
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            first = node.args[0]
+            if name == "setattr" and rooted_at(first, "websockets"):
+                found.append(f"{line}: setattr on websockets")
+            elif name in ("patch", "setattr") and isinstance(first, ast.Constant) and isinstance(first.value, str) \
+                    and (first.value.startswith("websockets.") or first.value.startswith("viser._")):
+                found.append(f"{line}: patches {first.value}")
+    return sorted(found, key=lambda entry: int(entry.split(":")[0]))
+
+
+def test_the_viser_internals_check_can_fail(tmp_path):
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "import viser\nimport websockets.asyncio.server\nfrom viser._messages import RunJavascriptMessage\n"
+        "from viser import _messages\nfrom websockets.asyncio.server import ServerConnection\n\n"
+        "def f(client, monkeypatch):\n    client._websock_connection.queue_message(None)\n"
+        "    websockets.asyncio.server.serve = None\n    x = viser._messages\n"
+        "    monkeypatch.setattr('websockets.asyncio.server.serve', None)\n    client.client_id\n")
+    assert [entry.split(":")[0] for entry in viser_internals_touched(sample)] == \
+        ["2", "3", "4", "8", "9", "10", "11"]
+
+
+def test_only_viser_compat_touches_viser_or_websockets_internals():
+    """Issue 19: viser's and websockets' internals are used in teleop/web/viser_compat.py only
+    (tests/test_viser_contract.py checks them against the installed releases)."""
+    found = [
+        f"{path.relative_to(ROOT)}:{entry}"
+        for package in [*ALLOWED, "bench"]
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if path.relative_to(ROOT) != VISER_COMPAT
+        for entry in viser_internals_touched(path)
+    ]
+    assert not found, "only teleop/web/viser_compat.py may use viser's or websockets' internals:\n" + "\n".join(found)
+    assert viser_internals_touched(ROOT / VISER_COMPAT)  # the check sees the internals where they are

@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 import viser
-from viser._messages import RunJavascriptMessage  # viser's way to run a script in a page (add_plotly uses it)
 
 from devices.base import SpeedControlled
 from devices.keyboard import KeyboardDevice
@@ -41,6 +40,7 @@ from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys, channel_scrip
 from teleop.web.panel import Panel, PanelDevice
 from teleop.web.sim_thread import SimThread, Snapshot
 from teleop.web.view_quality import head_script, simplify
+from teleop.web.viser_compat import run_javascript
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
     from teleop.learn.takeover import Takeover
@@ -185,7 +185,7 @@ class WebApp:
             channel_script(client.client_id, keys=[])
         if self.page_inputs.any_device:
             source += self.page_inputs.script()
-        client._websock_connection.queue_message(RunJavascriptMessage(source=source))  # noqa: SLF001
+        run_javascript(client, source)
         self._clients_changed()
 
     def _client_disconnected(self, client: viser.ClientHandle) -> None:

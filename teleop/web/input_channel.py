@@ -33,6 +33,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
 from teleop.web.input_messages import InputMessage, Rejected, parse
+from teleop.web.viser_compat import limit_message_size
 
 PATH = "/teleop/input"
 MAX_FRAME = 64 * 1024  # bigger frames close the connection (websockets' limit; code 1009)
@@ -110,9 +111,7 @@ class InputChannel:
             return
         self.connections += 1
         conn = next(self._ids)
-        protocol = getattr(connection, "protocol", None)
-        if protocol is not None and hasattr(protocol, "max_message_size"):
-            protocol.max_message_size = MAX_FRAME  # viser lets its own socket take 50 MB; a page's keys need 512 B
+        limit_message_size(connection, MAX_FRAME)  # viser lets its own socket take 50 MB; a page's keys need 512 B
         remote = connection.remote_address[0] if connection.remote_address else "?"
         bucket = _Bucket()
         self._tell("opened", conn, str(remote))

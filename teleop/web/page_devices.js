@@ -1,7 +1,9 @@
 // Gamepads (Gamepad API) and a SpaceMouse over WebHID, read in the operator's browser and sent on the
 // page's input channel (`send`, given by the channel's script). The server validates every message and
-// feeds devices/gamepad.py and devices/webhid.py; it treats a silent pad as released.
-(function (send) {
+// feeds devices/gamepad.py and devices/webhid.py; it treats a silent pad as released. `ui` names the panel's
+// "Connect SpaceMouse" button as viser draws it: {button: CSS selector, connectSpaceMouse: its label}
+// (teleop/web/page_devices.py, teleop/web/viser_compat.py).
+(function (send, ui) {
   "use strict";
   if (window.__teleopPageDevices) return;
   const state = window.__teleopPageDevices = {gamepadStates: 0, hidReports: 0, hidDevice: null};
@@ -50,8 +52,8 @@
     });
   }
   document.addEventListener("click", (e) => {  // viser's button: listened to here, so the click is the gesture
-    const button = e.target && e.target.closest && e.target.closest("button");
-    if (!button || button.textContent.trim() !== "Connect SpaceMouse") return;
+    const button = e.target && e.target.closest && e.target.closest(ui.button);
+    if (!button || button.textContent.trim() !== ui.connectSpaceMouse) return;
     if (!navigator.hid) { alert("This browser has no WebHID: use Chrome or Edge"); return; }
     navigator.hid.requestDevice({filters: FILTERS})
       .then((devices) => devices.length ? useDevice(devices[0]) : null)

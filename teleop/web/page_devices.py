@@ -10,6 +10,7 @@ answering pings: a pad's sticks, the phone's clutch, a SpaceMouse's deflection.
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -21,9 +22,11 @@ from teleop.web.input_messages import (
     Gamepad, Hid, HidConnect, HidDisconnect, InputMessage, Phone, PhoneButton, View,
 )
 from teleop.web.page_keyboard import PageKeys
+from teleop.web.viser_compat import GUI_BUTTON_SELECTOR
 
 SCRIPT = Path(__file__).with_name("page_devices.js")
 PHONE_PAGE = Path(__file__).with_name("phone.html")
+CONNECT_SPACEMOUSE = "Connect SpaceMouse"  # the panel button whose click asks the browser for a WebHID device
 
 
 class PageInputs:
@@ -47,7 +50,10 @@ class PageInputs:
     def script(self) -> str:
         """The page's gamepad / WebHID script, run with the input channel's sender."""
         source = SCRIPT.read_text(encoding="utf-8").strip().rstrip(";")
-        return f"\n{source}((m) => window.__teleopInput && window.__teleopInput.sendRaw(JSON.stringify(m)));\n"
+        # The panel's button, as viser draws it (viser_compat): found by the page from its selector and label.
+        ui = json.dumps({"button": GUI_BUTTON_SELECTOR, "connectSpaceMouse": CONNECT_SPACEMOUSE})
+        send = "(m) => window.__teleopInput && window.__teleopInput.sendRaw(JSON.stringify(m))"
+        return f"\n{source}({send}, {ui});\n"
 
     @staticmethod
     def phone_page() -> bytes:

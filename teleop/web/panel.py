@@ -18,6 +18,7 @@ import viser
 from devices.command import Command
 from devices.gamepad import MAPPING as GAMEPAD_MAPPING
 from teleop.web.loop_thread import LoopThread
+from teleop.web.page_devices import CONNECT_SPACEMOUSE
 from teleop.web.page_keyboard import PageKeyboardDevice
 
 REFRESH_HZ = 4.0
@@ -121,7 +122,7 @@ class Panel(LoopThread):
             self.devices_md = gui.add_markdown(self._devices_text())
             if app.page_inputs.webhid is not None:
                 # The page's script asks the browser for the device in this click (WebHID needs a user gesture).
-                gui.add_button("Connect SpaceMouse", hint="a SpaceMouse plugged into this computer (WebHID: Chrome, Edge)")
+                gui.add_button(CONNECT_SPACEMOUSE, hint="a SpaceMouse plugged into this computer (WebHID: Chrome, Edge)")
             if app.phone_url is not None:
                 gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see README)")
             if app.page_inputs.gamepad is not None:

@@ -25,6 +25,7 @@ from collections.abc import Callable
 import mujoco
 
 from recorder.annotations import AnnotationError, Subtask, sidecar_path, write_subtasks
+from recorder.disk import cause
 from replay.episode import Episode
 from replay.subtask_edit import SubtaskEdits, initial_subtasks, object_choices
 
@@ -275,7 +276,8 @@ class SubtaskPanel:
             except AnnotationError as exc:
                 self.message = f"not saved: {exc}"
             except OSError as exc:
-                self.message = f"not saved: cannot write {sidecar_path(self.episode.path)}: {exc.strerror or exc}"
+                # a full disk: one line naming the file and the cause; the file saved before stays as it was
+                self.message = f"not saved: cannot write {sidecar_path(self.episode.path)}: {cause(exc)}"
             else:
                 self.state, self.message = f"saved to {path.name}", ""
             self._refresh()

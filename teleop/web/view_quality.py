@@ -28,9 +28,12 @@ Browsers with a GPU keep viser's look at full resolution.
 
 from __future__ import annotations
 
+import json
+
 import viser
 
 from teleop.web.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
+from teleop.web.viser_compat import FIXED_DPR_PARAM
 
 LIGHT_NAME = "/teleop/software_view_light"
 LIGHT_INTENSITY = 2.0
@@ -55,8 +58,8 @@ _HEAD = """<script>
   }
   window.__teleopSoftwareGl = software;
   const params = new URLSearchParams(location.search);
-  if (!software || params.has("fixedDpr")) return;
-  params.set("fixedDpr", "DPR");  // read by viser when it starts, just after this
+  if (!software || params.has(__PARAM__)) return;
+  params.set(__PARAM__, "__DPR__");  // read by viser when it starts, just after this
   history.replaceState(history.state, "", location.pathname + "?" + params.toString() + location.hash);
 })();
 </script>"""
@@ -64,7 +67,7 @@ _HEAD = """<script>
 
 def head_script() -> bytes:
     """The script put first in viser's page: find out how it draws, and draw less if on a CPU."""
-    return _HEAD.replace("DPR", repr(SOFTWARE_DPR)).encode()
+    return _HEAD.replace("__PARAM__", json.dumps(FIXED_DPR_PARAM)).replace("__DPR__", repr(SOFTWARE_DPR)).encode()
 
 
 def simplify(client: viser.ClientHandle) -> None:

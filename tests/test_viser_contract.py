@@ -1,0 +1,310 @@
+"""The viser and websockets internals teleop relies on are there, in the installed releases.
+
+teleop/web/viser_compat.py is the one module that uses them; pyproject.toml pins viser
+to the minor versions this file passes on. When a release changes one, the failing
+test says what changed and which teleop feature it breaks, so that raising the pin is
+a matter of running this file (and fixing viser_compat.py where it fails).
+
+Most checks run on a real ViserServer started through `wrapping_serve` and reached
+with raw HTTP and websockets; the client bundle is read from viser's installed
+`client/build`. One test opens the page in the system's headless Chromium
+(Playwright) to see the browser side work: it is skipped without Chromium.
+"""
+
+from __future__ import annotations
+
+import gzip
+import html
+import importlib
+import inspect
+import re
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+import viser
+import websockets.asyncio.server
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from teleop.web.page_devices import CONNECT_SPACEMOUSE
+from teleop.web.viser_compat import (
+    FIXED_DPR_PARAM, GUI_BUTTON_SELECTOR, INDEX_PATHS, limit_message_size, run_javascript, with_head_script,
+    wrapping_serve,
+)
+from tests import browser as headless
+
+VISER_PROTOCOL = f"viser-v{viser.__version__}"
+CLIENT_BUILD = Path(viser.__file__).resolve().parent / "client" / "build"
+LIMIT_PATH = "/contract/limit"  # a websocket path of ours, beside viser's, with a small message limit
+LIMIT_BYTES = 1024
+# Put first in viser's page: marks that it ran, and asks for half resolution when the URL says `half`.
+HEAD = (b"<script>window.__contractHead = true; (() => { const p = new URLSearchParams(location.search);"
+        b" if (!p.has('half')) return; p.set('" + FIXED_DPR_PARAM.encode() + b"', '0.5');"
+        b" history.replaceState(null, '', location.pathname + '?' + p.toString()); })();</script>")
+
+
+# The 3D view: the largest canvas that has pixels (viser's page also has an empty one of the same size).
+SCENE_CANVAS = ("[...document.querySelectorAll('canvas')].filter((c) => c.width > 0 && c.clientWidth > 0)"
+                ".sort((a, b) => b.clientWidth * b.clientHeight - a.clientWidth * a.clientHeight)[0]")
+
+
+def broken(what: str, breaks: str) -> str:
+    """The failure message: what changed in the installed viser, and what of teleop's it breaks."""
+    return (f"viser {viser.__version__} / websockets {websockets.__version__}: {what}. This breaks {breaks}. "
+            "Adapt teleop/web/viser_compat.py (the only place that relies on it) or keep the pin in pyproject.toml.")
+
+
+@dataclass(repr=False)  # a failing assert would print viser's page headers
+class Served:
+    """A plain ViserServer started through `wrapping_serve`, and what the wrap saw."""
+
+    server: viser.ViserServer
+    url: str
+    starts: list[bool]
+    passed: list[tuple] = field(default_factory=list)  # (handler, process_request) as viser passed them
+    viser_pages: list[tuple[str, dict]] = field(default_factory=list)  # (path, headers) of viser's own page answers
+    sockets: list[str] = field(default_factory=list)  # paths of websockets our handler saw
+    limit_closed: list[int | None] = field(default_factory=list)  # close codes of the limited path
+    limit_settable: list[bool] = field(default_factory=list)  # the connection had the limit to set
+
+
+@pytest.fixture(scope="module")
+def served():
+    cache: dict = {}
+    seen: dict = {}
+
+    def wrap(handler, process_request):
+        served_ = seen["served"]
+        served_.passed.append((handler, process_request))
+
+        async def our_handler(connection):
+            path = urlsplit(connection.request.path).path
+            served_.sockets.append(path)
+            if path != LIMIT_PATH:
+                await handler(connection)
+                return
+            served_.limit_settable.append(hasattr(getattr(connection, "protocol", None), "max_message_size"))
+            limit_message_size(connection, LIMIT_BYTES)
+            try:
+                async for _ in connection:
+                    pass
+            except ConnectionClosed as exc:
+                served_.limit_closed.append(exc.sent.code if exc.sent is not None else None)
+
+        async def our_process_request(connection, request):
+            response = process_request(connection, request) if process_request is not None else None
+            if inspect.isawaitable(response):
+                response = await response
+            path = urlsplit(request.path).path
+            if response is not None and path in INDEX_PATHS and response.status_code == 200:
+                served_.viser_pages.append((path, dict(response.headers.raw_items())))
+                response = with_head_script(response, HEAD, cache)
+            return response
+
+        return our_handler, our_process_request
+
+    port = headless.free_port()
+    seen["served"] = Served(server=None, url=f"http://127.0.0.1:{port}", starts=[])  # type: ignore[arg-type]
+    original = websockets.asyncio.server.serve
+    with wrapping_serve(wrap) as starts:
+        server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    assert websockets.asyncio.server.serve is original, "wrapping_serve must put websockets' serve back"
+    out = seen["served"]
+    out.server, out.starts = server, starts
+    server.gui.add_button(CONNECT_SPACEMOUSE)
+    yield out
+    server.stop()
+
+
+def _get(url: str, **headers: str) -> tuple[dict, bytes]:
+    with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=30) as response:
+        return dict(response.headers.items()), response.read()
+
+
+def _wait(condition, what: str, timeout_s: float = 15.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.05)
+    pytest.fail(f"timed out waiting for {what}")
+
+
+# -- the server side ------------------------------------------------------------------
+def test_viser_starts_its_server_through_websockets_serve_which_we_wrap(served):
+    assert served.starts, broken(
+        "ViserServer() no longer starts its server by calling websockets.asyncio.server.serve at start",
+        "the session token, the Origin check and the page input channel (teleop.web.access refuses to start)")
+    assert len(served.passed) == 1
+    handler, process_request = served.passed[0]
+    assert callable(handler) and callable(process_request), broken(
+        "viser no longer passes its websocket handler first and its page server as process_request= to serve",
+        "the token gate, which wraps both")
+    assert served.server.get_port() == int(urlsplit(served.url).port or 0), broken(
+        "ViserServer moved to another port than the one asked for", "the printed URL")
+
+
+def test_viser_answers_its_page_at_the_index_paths_in_html_gzipped_when_asked(served):
+    for encoding in ("gzip", "identity"):
+        served.viser_pages.clear()
+        headers, body = _get(served.url + "/", **{"Accept-Encoding": encoding})
+        assert served.viser_pages, broken("viser's process_request no longer answers GET / with its page",
+                                          "the script put first in the page (view_quality's lighter view)")
+        path, viser_headers = served.viser_pages[-1]
+        assert "text/html" in viser_headers.get("Content-Type", ""), broken(
+            f"viser's page is served as {viser_headers.get('Content-Type')!r}, not text/html",
+            "with_head_script, which edits HTML answers only")
+        zipped = viser_headers.get("Content-Encoding") == "gzip"
+        assert zipped == (encoding == "gzip"), broken(
+            f"viser's page for Accept-Encoding {encoding} came with Content-Encoding "
+            f"{viser_headers.get('Content-Encoding')!r}", "with_head_script, which unzips gzip answers only")
+        page = gzip.decompress(body) if headers.get("Content-Encoding") == "gzip" else body
+        assert page.count(b"<head>") == 1, broken("viser's page has no single plain <head> tag",
+                                                  "the script put first in the page")
+        assert page.split(b"<head>", 1)[1].startswith(HEAD)  # ours, before any of viser's scripts
+        assert int(headers["Content-Length"]) == len(body)
+    assert (CLIENT_BUILD / "index.html").read_bytes().count(b"<head>") == 1
+
+
+def test_a_client_handle_queues_messages_on_its_connection_and_the_message_class_is_there(served):
+    messages = importlib.import_module("viser._messages")
+    cls = getattr(messages, "RunJavascriptMessage", None)
+    assert cls is not None, broken("viser._messages.RunJavascriptMessage is gone",
+                                   "run_javascript: the page's key, gamepad and SpaceMouse scripts")
+    assert "source" in inspect.signature(cls).parameters and cls(source="1").source == "1", broken(
+        "RunJavascriptMessage no longer takes source=", "run_javascript")
+    # viser registers a ClientHandle after its page's first camera message: the browser test below sends one
+    # and runs a script through it; here, the parts it is made of.
+    init = inspect.getsource(viser.ClientHandle.__init__)
+    assert re.search(r"self\._websock_connection\s*=", init), broken(
+        "viser.ClientHandle no longer keeps its connection in _websock_connection",
+        "run_javascript: the page's key, gamepad and SpaceMouse scripts")
+    connection_cls = getattr(importlib.import_module("viser.infra"), "WebsockClientConnection", None)
+    queue = getattr(connection_cls, "queue_message", None)
+    assert queue is not None and list(inspect.signature(queue).parameters) == ["self", "message"], broken(
+        "viser.infra.WebsockClientConnection.queue_message(message) is gone or takes other arguments",
+        "run_javascript")
+    with connect(served.url.replace("http://", "ws://") + "/", subprotocols=[VISER_PROTOCOL], open_timeout=10) as ws:
+        assert ws.recv(timeout=10)  # viser's first message, through our wrapped handler
+    assert "/" in served.sockets
+
+
+def test_our_message_size_limit_closes_a_connection_that_sends_a_bigger_frame(served):
+    why = "limit_message_size: the input channel's frames would be bounded by viser's 50 MB, not MAX_FRAME"
+    with connect(served.url.replace("http://", "ws://") + LIMIT_PATH, open_timeout=10) as ws:
+        ws.send(b"x" * (LIMIT_BYTES // 2))
+        _wait(lambda: served.limit_settable, "our handler to take the connection")
+        assert served.limit_settable == [True], broken(
+            "a websockets ServerConnection has no protocol.max_message_size to set", why)
+        ws.send(b"x" * (LIMIT_BYTES * 4))
+        try:
+            ws.recv(timeout=10)
+        except ConnectionClosed:
+            pass
+        else:
+            pytest.fail(broken("a frame over protocol.max_message_size did not close the connection", why))
+    _wait(lambda: served.limit_closed, "the limited connection to close")
+    assert served.limit_closed == [1009], broken(
+        f"a frame over the limit closed with code {served.limit_closed}, not 1009 (message too big)",
+        "the input channel's frame limit")
+
+
+# -- the client bundle -------------------------------------------------------------------
+def client_code() -> str:
+    """viser's client JavaScript as the browser gets it: plain scripts, or the bundle packed into index.html
+    (viser 1.1: base-88 text in `<script data-p=...>`, zstd-compressed, styles then code: data-ss, data-cs)."""
+    page = (CLIENT_BUILD / "index.html").read_text(encoding="utf-8")
+    scripts = [page, *(p.read_text(encoding="utf-8", errors="replace") for p in CLIENT_BUILD.rglob("*.js"))]
+    packed = re.search(r'<script data-p="([^"]*)"[^>]*?data-ss="(\d+)"[^>]*?data-cs="(\d+)"[^>]*>(.*?)</script>',
+                       page, re.S)
+    if packed is not None:
+        import zstandard  # a viser dependency
+
+        alphabet = re.search(r'const A="((?:[^"\\]|\\.)*)"', packed.group(4))
+        assert alphabet is not None, broken("viser's packed client bundle has no alphabet (const A=...) any more",
+                                            "this test's reading of the bundle")
+        letters = alphabet.group(1).replace("\\\\", "\\")
+        value = {c: i for i, c in enumerate(letters)}
+        text, base = html.unescape(packed.group(1)), len(letters)
+        data = bytearray()
+        for start in range(0, len(text) - len(text) % 5, 5):
+            number = 0
+            for c in text[start:start + 5]:
+                number = number * base + value[c]
+            data += number.to_bytes(4, "big")
+        if rest := len(text) % 5:
+            number = 0
+            for c in text[len(text) - rest:]:
+                number = number * base + value[c]
+            data += number.to_bytes(rest - 1, "big")
+        styles, code = int(packed.group(2)), int(packed.group(3))
+        raw = zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=styles + code)
+        scripts.append(raw[styles:].decode("utf-8", errors="replace"))
+    return "\n".join(scripts)
+
+
+@pytest.fixture(scope="module")
+def bundle() -> str:
+    return client_code()
+
+
+def test_the_client_reads_the_fixed_dpr_url_parameter(bundle):
+    assert re.search(r"\.get\(([\"'`])" + re.escape(FIXED_DPR_PARAM) + r"\1\)", bundle), broken(
+        f"viser's client no longer reads the {FIXED_DPR_PARAM!r} URL parameter (searchParams.get)",
+        "view_quality: a browser drawing WebGL on the CPU would draw at full resolution")
+
+
+def test_the_client_runs_run_javascript_messages_as_functions(bundle):
+    assert re.search(r"RunJavascriptMessage[\"'`]?\s*:\s*(?:new\s+)?Function\(", bundle), broken(
+        "viser's client no longer runs a RunJavascriptMessage's source with Function(source)()",
+        "run_javascript: the page's key, gamepad and SpaceMouse scripts")
+
+
+# -- in a browser ---------------------------------------------------------------------------
+@pytest.mark.browser
+def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(served):
+    if headless.chromium_path() is None:
+        pytest.skip("no Chromium (Debian: apt-get install chromium; or set TELEOP_CHROMIUM): the browser side "
+                    "of the contract is not checked")
+    from playwright import sync_api as playwright_api
+
+    with playwright_api.sync_playwright() as p:
+        browser = headless.launch(p)
+        try:
+            before = set(served.server.get_clients())
+            page = headless.open_page(browser, served.url + "/?half", size=(800, 600))
+            assert page.evaluate("window.__contractHead === true")
+            # The head script asked for half resolution before viser's client read the URL.
+            page.wait_for_function(f"() => ({SCENE_CANVAS}) !== undefined", timeout=30000)
+            ratio = page.evaluate(f"() => {{ const c = {SCENE_CANVAS}; return c.width / c.clientWidth; }}")
+            assert page.evaluate("window.devicePixelRatio") == 1
+            assert abs(ratio - 0.5) < 0.05, broken(
+                f"with ?{FIXED_DPR_PARAM}=0.5 set by a script first in the page, viser's canvas has "
+                f"{ratio:.2f} device pixels per CSS pixel, not 0.5",
+                "view_quality's lighter view for software WebGL")
+            # A script sent to this page's client runs in the page.
+            client = _wait(lambda: [c for i, c in served.server.get_clients().items() if i not in before],
+                           "the page's client")[-1]
+            run_javascript(client, "window.__contractRan = 6 * 7;")
+            try:
+                page.wait_for_function("window.__contractRan === 42", timeout=15000)
+            except playwright_api.TimeoutError:
+                pytest.fail(broken("a RunJavascriptMessage queued on the client's connection did not run in the page",
+                                   "the page's key, gamepad and SpaceMouse scripts"))
+            # A GUI button is an element matching GUI_BUTTON_SELECTOR whose text is its label.
+            found = f"""() => [...document.querySelectorAll({GUI_BUTTON_SELECTOR!r})]
+                          .some((b) => b.textContent.trim() === {CONNECT_SPACEMOUSE!r})"""
+            try:
+                page.wait_for_function(found, timeout=15000)
+            except playwright_api.TimeoutError:
+                pytest.fail(broken(f"gui.add_button({CONNECT_SPACEMOUSE!r}) is not drawn as a "
+                                   f"{GUI_BUTTON_SELECTOR!r} element with that text",
+                                   "page_devices.js, which asks for a WebHID SpaceMouse on that button's click"))
+            page.close()
+        finally:
+            browser.close()
