@@ -81,6 +81,10 @@ case "$first" in
         make_venv "test,lerobot,train,cluster"
         robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
+        if [ -n "${TELEOP_CI_CHECKS:-}" ]; then  # CI: the linter and a normal (non-editable) install, before the tests
+            "$VENV/bin/ruff" check .
+            bash .ci/wheel_check.sh "$VENV/bin/python"
+        fi
         set +e
         "$VENV/bin/python" -m pytest "$@"
         rc=$?

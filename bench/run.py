@@ -16,7 +16,7 @@ from rich.console import Console
 
 from teleop.cli.json_output import json_stdout, print_json
 
-MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e")
+MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults")
 SLOW = ("e2e",)  # run only when named in --only: a whole train-and-evaluate loop (~30 min on 2 cores)
 
 

@@ -17,11 +17,11 @@ next one starts where the previous ended, the last ends at the episode's steps.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from recorder.disk import write_text_whole
 from scenes.errors import TeleopError
 
 SIDECAR_SUFFIX = ".subtasks.json"
@@ -81,10 +81,7 @@ def write_subtasks(episode: str | Path, subtasks: Sequence[Subtask], steps: int,
     check_subtasks(subtasks, steps, str(path))
     doc = {"version": VERSION, "episode": Path(episode).name, "steps": int(steps), "by": by,
            "subtasks": [s.to_json() for s in subtasks]}
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    os.replace(tmp, path)
-    return path
+    return write_text_whole(path, json.dumps(doc, indent=1) + "\n")  # a full disk: WriteError, no .part left
 
 
 def read_subtasks(episode: str | Path, steps: int | None = None) -> list[Subtask] | None:

@@ -57,7 +57,8 @@ def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = Non
     leg_height = 0.75
 
     world = spec.worldbody
-    world.add_light(pos=[layout.center[0], layout.center[1], 2.5], dir=[0, 0, -1], diffuse=[0.55, 0.55, 0.55], specular=[0.05, 0.05, 0.05], castshadow=True)
+    world.add_light(pos=[layout.center[0], layout.center[1], 2.5], dir=[0, 0, -1], diffuse=[0.55, 0.55, 0.55],
+                    specular=[0.05, 0.05, 0.05], castshadow=True)
     world.add_light(pos=[-1.5, -1.5, 2.0], dir=[0.5, 0.5, -0.7], diffuse=[0.3, 0.3, 0.3], specular=[0.05, 0.05, 0.05], castshadow=False)
     world.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],

@@ -172,7 +172,8 @@ def _prepare_user_arm(spec: mujoco.MjSpec, robot: RobotSpec, arm: ArmSpec) -> Ar
     joint_ids = {probe.joint(j).id: j for j in arm.joints}
     for i in range(probe.nu):
         if probe.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT and probe.actuator_trnid[i, 0] in joint_ids:
-            is_position = probe.actuator_biastype[i] == mujoco.mjtBias.mjBIAS_AFFINE and probe.actuator_gainprm[i, 0] > 0 and probe.actuator_biasprm[i, 1] < 0
+            is_position = (probe.actuator_biastype[i] == mujoco.mjtBias.mjBIAS_AFFINE and probe.actuator_gainprm[i, 0] > 0
+                           and probe.actuator_biasprm[i, 1] < 0)
             if not is_position:
                 spec.delete(spec.actuators[i])
                 probe = None  # indices shift; recount below

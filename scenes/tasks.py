@@ -167,7 +167,8 @@ class Door(Task):
         frame.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.015, 0.015, height / 2], pos=[0, width / 2 + 0.02, height / 2], rgba=grey)
         # The hinge is on the +y post; the door swings toward the robot (-x).
         door = frame.add_body(name="door", pos=[0, width / 2, 0])
-        door.add_joint(name="door_hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], range=[0, 1.9], damping=0.5, frictionloss=0.05, armature=0.01)
+        door.add_joint(name="door_hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], range=[0, 1.9], damping=0.5,
+                       frictionloss=0.05, armature=0.01)
         door.add_geom(name="door_panel", type=mujoco.mjtGeom.mjGEOM_BOX, size=[thick / 2, width / 2, height / 2 - 0.005],
                       pos=[0, -width / 2, height / 2 + 0.002], rgba=[0.7, 0.55, 0.35, 1.0], density=400)
         handle_r = 0.45 * s

@@ -1,7 +1,12 @@
 """Driving the page from a headless Chromium (Playwright): shared by the tests and the bench.
 
-Uses the system's Chromium (Debian: /usr/bin/chromium); nothing is downloaded.
-Two things need care and live here:
+Uses the system's Chromium (Debian: /usr/bin/chromium, or $TELEOP_CHROMIUM); nothing is
+downloaded. The browser tests (`pytest -m browser`) open the served page in it and use it
+as a person would: drag the gizmo, press keys, click the panel's buttons, feed gamepad,
+phone and WebHID events through init scripts, and check what the page draws. Without
+Chromium they fail (an error naming the install, never a skip): install it with
+`apt-get install chromium` (Debian/Ubuntu; `./run.sh test` does that as root) or point
+TELEOP_CHROMIUM at a Chromium or Chrome binary. Two things need care and live here:
 
 - viser's client talks to the server from a Web Worker, which Playwright's
   websocket events do not see. `COUNT_FRAMES` wraps the page's Worker
@@ -65,7 +70,7 @@ COUNT_FRAMES = r"""
 
 
 def chromium_path() -> str | None:
-    """The system Chromium, or None (tests skip, the bench reports nothing)."""
+    """The system Chromium, or None (the browser tests then fail with the install line; the bench reports nothing)."""
     for candidate in (os.environ.get("TELEOP_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium"),
                       shutil.which("chromium-browser"), shutil.which("google-chrome")):
         if candidate and os.path.exists(candidate):
@@ -77,7 +82,8 @@ def launch(playwright):
     """A headless system Chromium (raises FileNotFoundError when there is none)."""
     path = chromium_path()
     if path is None:
-        raise FileNotFoundError("no Chromium found (Debian: apt-get install chromium)")
+        raise FileNotFoundError("no Chromium found: the browser tests drive the page in headless Chromium; install it "
+                                "(Debian: apt-get install chromium) or set TELEOP_CHROMIUM to its path")
     return playwright.chromium.launch(executable_path=path, args=list(CHROMIUM_ARGS))
 
 

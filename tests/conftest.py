@@ -73,3 +73,36 @@ def browser():
         b = headless.launch(p)
         yield b
         b.close()
+
+
+# --- markers: `pytest -m unit` (quick, in-process), `-m browser` (headless Chromium), `-m e2e` -----------------
+# e2e: whole jobs in real processes (export through LeRobot, lerobot-train, Ray, kill -9, a full disk, Xvfb).
+E2E_FILES = {
+    "test_disk_full.py", "test_disk_full_commands.py", "test_eval.py", "test_export.py", "test_export_parallel.py",
+    "test_export_render.py", "test_export_resume.py", "test_export_stats.py", "test_generate.py",
+    "test_generate_resume.py", "test_keyboard.py", "test_object_state.py", "test_packaging.py", "test_recorder_e2e.py",
+    "test_robomimic.py", "test_takeover.py", "test_gym.py", "test_json_output.py", "test_cli_run.py",
+}
+
+
+def _uses_chromium(item: pytest.Item) -> bool:
+    import inspect
+
+    if "browser" in getattr(item, "fixturenames", ()):
+        return True
+    try:
+        source = inspect.getsource(item.function)
+    except (OSError, TypeError, AttributeError):
+        return False
+    return "headless.launch" in source or "sync_playwright" in source
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test gets exactly one of the markers unit, browser, e2e (browser wins over e2e)."""
+    for item in items:
+        if item.get_closest_marker("browser") or _uses_chromium(item):
+            item.add_marker(pytest.mark.browser)
+        elif item.get_closest_marker("e2e") or item.path.name in E2E_FILES:
+            item.add_marker(pytest.mark.e2e)
+        else:
+            item.add_marker(pytest.mark.unit)

@@ -143,7 +143,8 @@ BAD = {
     "home": ('name = "x"\nmjcf = "test_arm.xml"\nee_site = "tool_center"\njoints = ["j1"]\nhome = [0.0, 1.0]\n', "'home'"),
     "toml": ('name = "x\nmjcf = ', "not valid TOML"),
     "mjcf_missing": ('name = "x"\nmjcf = "gone.xml"\nee_site = "s"\njoints = ["j1"]\n', "not found"),
-    "gripper": ('name = "x"\nmjcf = "test_arm.xml"\nee_site = "tool_center"\njoints = ["j1"]\nhome = [0.0]\n[gripper]\nactuator = "claw"\nopen = 1\nclosed = 0\n', "gripper actuator 'claw'"),
+    "gripper": ('name = "x"\nmjcf = "test_arm.xml"\nee_site = "tool_center"\njoints = ["j1"]\nhome = [0.0]\n'
+                '[gripper]\nactuator = "claw"\nopen = 1\nclosed = 0\n', "gripper actuator 'claw'"),
 }
 
 

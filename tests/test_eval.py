@@ -174,3 +174,29 @@ def test_a_trained_checkpoint_drives_a_served_session_until_taken_over(trained):
         assert takeover.driver == "operator" and takeover.policy_steps == 5 and takeover.operator_steps == 3
     finally:
         takeover.close()
+
+
+def test_eval_record_on_a_full_disk_is_one_line_with_the_report(trained, tmp_path):
+    """Issue 25: `teleop eval --record` onto a full disk: one line naming the file and the cause, exit 2,
+    the --json report of the rollouts done (with `error`), every rollout recorded before it whole."""
+    import json
+
+    from tests.test_disk_full import CAUSES, small_fs
+
+    with small_fs(tmp_path, 300, 100_000) as fs:
+        rec = fs.path / "rollouts"
+        if fs.file_limit is None:  # a tmpfs: room for a few rollouts (~10 KB each), not eight
+            (fs.path / "filler.bin").write_bytes(b"\0" * (300 * 1024 - 40_000))
+        result = run_cli("eval", "--policy", str(trained["model"]), "--scene", "lift", "--robot", "panda",
+                         "--episodes", "8", "--seed", "1000", "--max-seconds", "1", "--record", str(rec),
+                         "--device", "cpu", "--json")
+        assert result.returncode == 2, result.stderr[-3000:]
+        assert "Traceback" not in result.stderr
+        errors = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+        assert len(errors) == 1 and str(rec) in errors[0] and any(c in errors[0] for c in CAUSES), result.stderr
+        report = json.loads(result.stdout)
+        assert report["error"] and report["error"] in errors[0] and report["episodes"] < 8
+        assert not [p for p in fs.path.rglob("*") if p.name.endswith((".part", ".tmp"))]
+        for e in report["per_episode"]:  # the rollouts recorded before the disk filled: whole, bit-exact
+            episode = load_episode(e["file"])
+            assert episode.meta.complete and teleop.resimulate(episode).bit_exact

@@ -8,7 +8,7 @@ a matter of running this file (and fixing viser_compat.py where it fails).
 Most checks run on a real ViserServer started through `wrapping_serve` and reached
 with raw HTTP and websockets; the client bundle is read from viser's installed
 `client/build`. One test opens the page in the system's headless Chromium
-(Playwright) to see the browser side work: it is skipped without Chromium.
+(Playwright) to see the browser side work (it fails without Chromium, as every browser test does).
 """
 
 from __future__ import annotations
@@ -268,9 +268,6 @@ def test_the_client_runs_run_javascript_messages_as_functions(bundle):
 # -- in a browser ---------------------------------------------------------------------------
 @pytest.mark.browser
 def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(served):
-    if headless.chromium_path() is None:
-        pytest.skip("no Chromium (Debian: apt-get install chromium; or set TELEOP_CHROMIUM): the browser side "
-                    "of the contract is not checked")
     from playwright import sync_api as playwright_api
 
     with playwright_api.sync_playwright() as p:

@@ -295,7 +295,7 @@ def test_a_browser_drawing_in_software_gets_the_cheap_view_and_others_keep_viser
     try:
         gpu.goto(server.url, timeout=60000)
         gpu.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
-        status = server.wait_for(lambda s: s["clients"] == 2 and s["input"]["accepted"] > 0, what="a second browser")
+        server.wait_for(lambda s: s["clients"] == 2 and s["input"]["accepted"] > 0, what="a second browser")
         time.sleep(1.0)  # its view message has come by now
         assert server.status()["software_views"] == 1
         assert gpu.evaluate("new URLSearchParams(location.search).get('fixedDpr')") is None  # full resolution

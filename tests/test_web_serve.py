@@ -153,7 +153,7 @@ def test_reset_changes_object_placement(page, server):
                     what="the arm to settle at home")
 
 
-def test_camera_picture_or_a_clear_note(server):
+def test_camera_picture_or_a_clear_note(page, server):  # pictures are drawn while a page watches
     status = server.wait_for(lambda s: s["camera_frames"] > 0 or s["camera_problem"], what="a camera picture")
     assert status["camera_frames"] > 0 or "MUJOCO_GL" in status["camera_problem"]
 

@@ -8,7 +8,10 @@ import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from recorder.disk import WriteError, cause, write_failure_in
 from replay.export.dataset import ExportOptions, ExportSummary, check_options, export_serial
+from replay.export.lerobot_io import ExportError
+from replay.export.pieces import is_interrupted
 from replay.export.shards import export_parallel
 
 
@@ -23,9 +26,28 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     """
     log = log or (lambda line: print(line, file=sys.stderr))
     check_options(opts)
-    if opts.workers > 1 or opts.ray is not None:
-        return export_parallel(list(paths), opts, log, cancel)
-    return export_serial(paths, opts, log, cancel)
+    try:
+        if opts.workers > 1 or opts.ray is not None:
+            return export_parallel(list(paths), opts, log, cancel)
+        return export_serial(paths, opts, log, cancel)
+    except ExportError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a full disk reaches here as OSError, or LeRobot's RuntimeError
+        failure = write_failure_in(exc)
+        if failure is None:
+            raise
+        detail = str(failure) if isinstance(failure, WriteError) else f"{failure.filename or opts.out}: {cause(failure)}"
+        raise ExportError(f"{detail}; {_what_is_left(opts)}") from None
+
+
+def _what_is_left(opts: ExportOptions) -> str:
+    """After a write error: what the dataset directory holds now, and how to go on."""
+    if is_interrupted(opts.out):
+        return ("the pieces finished before are kept: free some space, then run the same command with --resume "
+                "to continue")
+    if opts.append:
+        return f"{opts.out} is as it was before"
+    return "nothing was kept" if not opts.out.exists() else f"{opts.out} was left as it is"
 
 
 __all__ = ["ExportOptions", "ExportSummary", "export_dataset"]

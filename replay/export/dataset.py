@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 
+from recorder.disk import check_free_space
 from replay.episode import Episode, EpisodeError, find_episodes, load_episode
 from replay.errors import first_line
 from replay.export.frames import (
@@ -78,6 +79,7 @@ class ExportOptions:
     # loses at most the piece in progress, and `resume` continues an interrupted one.
     piece_episodes: int = PIECE_EPISODES
     resume: bool = False
+    force: bool = False  # go on when the free space looks too small for the rest (checked after the first piece)
 
 
 @dataclass
@@ -106,7 +108,8 @@ class ExportSummary:
         text = (
             f"exported {self.episodes} episode{'s' * (self.episodes != 1)}, {self.frames} frames "
             f"({self.frames / self.fps if self.fps else 0:.1f} s at {self.fps} fps) in {self.seconds:.1f} s "
-            f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, {self.dataset_episodes} episode{'s' * (self.dataset_episodes != 1)} in all)"
+            f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, "
+            f"{self.dataset_episodes} episode{'s' * (self.dataset_episodes != 1)} in all)"
         )
         if self.resumed_from:
             text += f"; resumed after the {self.resumed_from} episode{'s' * (self.resumed_from != 1)} already exported"
@@ -410,8 +413,19 @@ def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callabl
     t0 = time.perf_counter()
     logs = [log]  # the first piece's notes (the video decoder) are the export's; the same again are not
 
+    frames_left = [sum(e.steps for e in chosen)]  # not yet exported by this run
+    per_frame: list[float] = []  # dataset bytes per frame, measured on the first piece this run writes
+
     def piece(paths: list[Path], piece_opts: ExportOptions) -> ExportSummary:
-        return _export_piece(paths, piece_opts, logs.pop() if logs else (lambda line: None), cancel)
+        if per_frame and not opts.force:  # before the next piece: the rest must clearly fit (issue 25)
+            check_free_space(opts.out, per_frame[0] * frames_left[0], f"{frames_left[0]} more frames of "
+                             f"~{per_frame[0] / 1000:.1f} KB")
+        size0 = dir_size(opts.out) if opts.out.exists() else 0
+        done = _export_piece(paths, piece_opts, logs.pop() if logs else (lambda line: None), cancel)
+        frames_left[0] -= done.frames
+        if not per_frame and done.frames:
+            per_frame.append(max(0, (dir_size(opts.out) if opts.out.exists() else 0) - size0) / done.frames)
+        return done
 
     parts, summary.resumed_from = export_in_pieces([e.path for e in chosen], opts, piece, log, opts.piece_episodes)
     for part in parts:

@@ -7,6 +7,8 @@ size on disk of what LeRobot wrote.
 
 from __future__ import annotations
 
+import logging
+
 from pathlib import Path
 
 from replay.errors import TeleopError
@@ -32,6 +34,9 @@ def load_lerobot():
         av.logging.set_libav_level(av.logging.ERROR)
     except (ImportError, AttributeError):
         pass
+    # A full disk reaches the export as the encoder's error, said in one line; LeRobot's own log of it
+    # ("Encoder thread error: [Errno 28] ...") would be a second one (from each worker, in parallel).
+    logging.getLogger("lerobot.datasets.video_utils").setLevel(logging.CRITICAL)
     return LeRobotDataset
 
 

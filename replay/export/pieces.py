@@ -230,8 +230,10 @@ def export_in_pieces(
         else:
             shutil.rmtree(journal_dir(out), ignore_errors=True)
     except BaseException:
+        journal = _read_manifest(out)
+        if journal is not None:
+            _roll_back(out, journal)  # the dataset is readable again, as its last whole piece left it
         if finished == 0 and manifest is None:  # failed before any piece was whole: as if never started
-            _roll_back(out, _read_manifest(out))
             shutil.rmtree(journal_dir(out), ignore_errors=True)
         raise  # else the journal stays: `--resume` continues from the last whole piece
     return summaries, done

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from recorder.disk import write_failure_in
 from replay.errors import first_line
 from replay.parallel import ClusterError, Runner, WorkerLost, shielded
 from replay.export.dataset import (
@@ -302,6 +303,9 @@ def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progres
     except ExportError:
         raise
     except Exception as exc:  # noqa: BLE001 - a worker lost, or a shard's error on Ray
+        if runner.backend == "local" and write_failure_in(exc) is not None:
+            with contextlib.suppress(Exception):  # a full disk: the other shards end early, their workers
+                runner.drain()  # exit whole (not terminated mid-write); the caller removes the shards
         raise _shard_error(runner, shards, exc) from None
     return results, False, t0
 

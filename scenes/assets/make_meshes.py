@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from trimesh.creation import box, cylinder, revolve, torus
+from trimesh.creation import box, revolve, torus
 
 OUT = Path(__file__).resolve().parent / "meshes"
 SECTIONS = 32  # facets around a revolved object: a few hundred to a few thousand faces each

@@ -74,6 +74,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     quiet_environment()  # before LeRobot loads: nothing from the Hub
     from teleop.learn.evaluate import EvalOptions, evaluate, make_eval_env
     from teleop.learn.policy import Checkpoint, LeRobotPolicy
+    from recorder import RecorderError
 
     checkpoint = Checkpoint(args.policy)  # a missing or wrong folder: one line before torch loads
     implied = checkpoint.env_options()
@@ -94,7 +95,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     with contextlib.closing(make_eval_env(opts)) as env:
         checkpoint.check(env)  # mismatched features: one line before torch loads
     policy = LeRobotPolicy.load(checkpoint, device=args.device)
-    summary = evaluate(policy, opts)
+    try:
+        summary = evaluate(policy, opts)
+    except RecorderError as exc:  # a full disk under --record: one line (main prints it), exit 2
+        done = getattr(exc, "summary", None)
+        if args.json and done is not None:
+            print_json(done.to_json())  # the rollouts done, and the error
+        raise
     if args.json:
         print_json(summary.to_json())
     else:

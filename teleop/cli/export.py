@@ -55,6 +55,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "options: what its finished pieces wrote is kept, the piece in progress is written again",
     )
     p.add_argument(
+        "--force", action="store_true",
+        help="go on even when the free space looks too small for the rest (checked after the first piece)",
+    )
+    p.add_argument(
         "--piece-episodes", default="20", metavar="N",
         help="episodes per finalized piece (default 20): a killed export loses at most the piece in progress",
     )
@@ -119,6 +123,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             object_state=not args.no_object_state,
             resume=args.resume,
             piece_episodes=_count(args.piece_episodes, "--piece-episodes", "episodes"),
+            force=args.force,
         )
         with cancel_on_interrupt() as cancel:  # Ctrl-C: the episode being saved ends whole, the saved ones stay
             summary = export_dataset(args.paths, opts, cancel=cancel)

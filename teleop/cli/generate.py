@@ -41,11 +41,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--keep-failures", action="store_true", help="also keep failed attempts (in DIR/failures, success false)")
     g.add_argument("--format", default="mcap", choices=("mcap", "hdf5", "both"), help="file format (default mcap)")
     g.add_argument("--max-attempts", type=int, default=None, metavar="N", help="give up after N attempts (default 10 x --num + 10)")
+    g.add_argument("--force-new", action="store_true",
+                   help="start a new run in an --out that holds other episodes (another run's, other sources or "
+                   "options) instead of refusing; without it, a re-run with the same sources and options resumes")
+    g.add_argument("--force", action="store_true", help="go on even when the free space looks too small for --num episodes")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     g.set_defaults(func=cmd_generate)
 
 
 def cmd_annotate(args: argparse.Namespace) -> int:
+    from recorder.disk import WriteError
     from replay.annotate import annotate
     from replay.episode import find_episodes
 
@@ -54,7 +59,13 @@ def cmd_annotate(args: argparse.Namespace) -> int:
         raise UsageError("no episode files found in " + ", ".join(str(p) for p in args.paths))
     episodes = []
     for path in files:
-        subtasks, how = annotate(path, auto=args.auto)
+        try:
+            subtasks, how = annotate(path, auto=args.auto)
+        except WriteError as exc:  # a full disk: the sidecars saved before stay, none is half-written
+            if args.json:
+                print_json({"episodes": episodes, "error": str(exc)})
+            raise WriteError(f"{exc} ({len(episodes)} of {len(files)} episodes annotated)"
+                             if episodes else str(exc)) from None
         episodes.append({"path": str(path), "by": how, "subtasks": [s.to_json() for s in subtasks]})
     if args.json:
         print_json({"episodes": episodes})
@@ -66,6 +77,7 @@ def cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
+    from recorder.disk import NotEnoughSpace, WriteError
     from teleop.generate.generator import GenerateOptions, generate
 
     if args.max_attempts is not None and args.max_attempts <= 0:
@@ -80,13 +92,24 @@ def cmd_generate(args: argparse.Namespace) -> int:
         formats=("mcap", "hdf5") if args.format == "both" else (args.format,),
         max_attempts=args.max_attempts,
         progress=sys.stderr.isatty(),
+        force_new=args.force_new,
+        force=args.force,
     )
-    with cancel_on_interrupt() as cancel:  # Ctrl-C: the workers stop, what was kept stays
-        summary = generate(args.sources, opts, cancel=cancel)
+    try:
+        with cancel_on_interrupt() as cancel:  # Ctrl-C: the workers stop, what was kept stays
+            summary = generate(args.sources, opts, cancel=cancel)
+    except WriteError as exc:  # a full disk: one line (main prints it), exit 2; the episodes kept stay whole
+        done = getattr(exc, "summary", None)
+        if args.json and done is not None:
+            done.error = str(exc)
+            print_json(done.to_json())
+        kept = done.resumed_from + done.successes if done is not None else 0
+        raise WriteError(f"{exc} ({kept} episodes kept in {args.out}; run the same command again to resume)"
+                         if kept and not isinstance(exc, NotEnoughSpace) else str(exc)) from None
     if args.json:
         print_json(summary.to_json())
     else:
         print(summary.line())
     if summary.interrupted:
         return 130
-    return 0 if summary.successes >= args.num else 1
+    return 0 if summary.resumed_from + summary.successes >= args.num else 1

@@ -13,6 +13,7 @@ sources and seed give the same episodes with 1, 2 or 20 workers.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import shutil
@@ -20,7 +21,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,13 +29,14 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from recorder import next_episode_index
 from recorder.annotations import read_subtasks, write_subtasks
+from recorder.disk import NotEnoughSpace, WriteError, check_free_space, write_bytes_whole, write_error
 from replay.annotate import auto_subtasks
 from replay.parallel import Runner, connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
 from scenes.errors import TeleopError, first_line
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
+from teleop.generate.resume import Done, Journal, run_identity
 from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
@@ -105,6 +107,9 @@ class GenerateSummary:
     seeds: list[int] = field(default_factory=list)  # seeds of the kept successes
     stopped_early: str = ""  # why fewer than asked were kept ("" when all were)
     interrupted: bool = False  # Ctrl-C: what was kept until then stays
+    resumed_from: int = 0  # kept episodes of this run already in --out when it started (a re-run resumes)
+    seeds_skipped: list[int] = field(default_factory=list)  # seeds already kept or failed there: not run again
+    error: str = ""  # the write error that stopped it ('<file>: <cause>'), "" when none
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -113,6 +118,7 @@ class GenerateSummary:
         out = (f"generated {self.successes} episodes in {self.attempts} attempts "
                f"({self.success_rate:.0%} success, {self.episodes_per_min:.1f} episodes/min, "
                f"{self.workers} {'Ray' if self.backend == 'ray' else 'local'} workers)")
+        out += f"; resumed from {self.resumed_from} episodes already there" if self.seeds_skipped else ""
         out += f"; {self.stopped_early}" if self.stopped_early else ""
         return out + ("; interrupted" if self.interrupted else "")
 
@@ -221,14 +227,22 @@ class GenerateOptions:
     max_attempts: int | None = None  # None: 10 x num + 10
     batch: int | None = None  # seeds per task; None: a few per worker, for balance
     progress: bool = True
+    force_new: bool = False  # start a new run in an --out that holds another run's (or other) episodes
+    force: bool = False  # go on when the free space looks too small for the episodes asked
 
 
 def generate(sources: Iterable[str | Path], opts: GenerateOptions,
              log: Callable[[str], None] | None = None, cancel: threading.Event | None = None) -> GenerateSummary:
-    """Generate `opts.num` successful episodes from the sources into `opts.out`.
+    """Generate `opts.num` successful episodes from the sources into `opts.out`, in total.
 
+    A re-run with the same sources and options continues where the last one stopped
+    (teleop.generate.resume): the seeds already kept or failed there are skipped and
+    only the missing episodes are generated. Other work in `opts.out` is refused
+    (ResumeRefused) unless `opts.force_new`.
     cancel: a token (the CLI sets it on Ctrl-C); once set, generation stops as on a
     KeyboardInterrupt: the batches in flight end, what was kept stays, `interrupted` is true.
+    A file that cannot be written (a full disk) stops it: the workers end, the episodes
+    kept stay whole, and a WriteError is raised with the summary as its `summary`.
     """
     log = log or (lambda line: print(line, file=sys.stderr))
     if opts.num <= 0:
@@ -245,95 +259,131 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
     stub, sources = load_sources(sources, log)
     job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures)
     max_attempts = opts.max_attempts or 10 * opts.num + 10
+    try:
+        journal = Journal(opts.out, run_identity(sources, opts.seed, opts.formats, opts.keep_failures,
+                                                 GENERATOR_VERSION), force_new=opts.force_new, log=log)
+    except WriteError as exc:
+        exc.summary = GenerateSummary()  # type: ignore[attr-defined]
+        raise
+    done = journal.done
+    summary = GenerateSummary(resumed_from=len(done.kept), seeds_skipped=sorted(done.seeds))
+    if summary.resumed_from >= opts.num:  # nothing left to do: no workers started
+        return summary
     t_start = time.perf_counter()
     if opts.ray is not None:
         runner = Runner(ray=opts.ray, shared=job, cancel=cancel)
     else:
         workers = opts.workers or os.cpu_count() or 1
         runner = Runner(workers, shared=job, setup=_warm_up, setup_args=(job,), cancel=cancel)
-    summary = GenerateSummary(workers=runner.workers, backend=runner.backend)
-    with runner:
-        summary.startup_s = runner.wait_started()  # spawn, imports, a first build (or joining Ray): not timed as work
-        opts.out.mkdir(parents=True, exist_ok=True)
-        base = next_episode_index(opts.out)
-        if opts.keep_failures:
-            base = max(base, next_episode_index(opts.out / "failures"))
-        # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
-        batch = opts.batch or (max(1, min(8, opts.num // (2 * runner.workers))) if runner.backend == "ray" else 2)
-        t0 = time.perf_counter()
-        try:
-            _drive(runner, opts, base, batch, max_attempts, summary)
-        except KeyboardInterrupt:
-            summary.interrupted = True
-            runner.stop()  # the batches in flight end now rather than finish: what was kept stays
-        finally:
-            work = time.perf_counter() - t0
-    summary.seconds = round(time.perf_counter() - t_start, 3)
-    summary.success_rate = round(summary.successes / summary.attempts, 4) if summary.attempts else 0.0
-    summary.episodes_per_min = round(60.0 * summary.successes / work, 2) if work > 0 else 0.0
-    if summary.successes < opts.num and not summary.interrupted:
+    summary.workers, summary.backend = runner.workers, runner.backend
+    work = 0.0
+    try:
+        with runner:
+            summary.startup_s = runner.wait_started()  # spawn, imports, a first build (or joining Ray): not timed as work
+            # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
+            batch = opts.batch or (max(1, min(8, opts.num // (2 * runner.workers))) if runner.backend == "ray" else 2)
+            t0 = time.perf_counter()
+            try:
+                _drive(runner, opts, journal, batch, max_attempts, summary)
+            except KeyboardInterrupt:
+                summary.interrupted = True
+                runner.stop()  # the batches in flight end now rather than finish: what was kept stays
+            finally:
+                work = time.perf_counter() - t0
+    except WriteError as exc:  # the runner has stopped its workers: the episodes kept are whole
+        summary.error = str(exc)
+        exc.summary = summary  # type: ignore[attr-defined]
+        raise
+    finally:
+        summary.seconds = round(time.perf_counter() - t_start, 3)
+        summary.success_rate = round(summary.successes / summary.attempts, 4) if summary.attempts else 0.0
+        summary.episodes_per_min = round(60.0 * summary.successes / work, 2) if work > 0 else 0.0
+    kept = summary.resumed_from + summary.successes
+    if kept < opts.num and not summary.interrupted:
         summary.stopped_early = (f"stopped after {summary.attempts} attempts (the bound) with "
-                                 f"{summary.successes} of {opts.num} episodes")
+                                 f"{kept} of {opts.num} episodes")
     return summary
 
 
-def _drive(runner: Runner, opts: GenerateOptions, base: int, batch: int, max_attempts: int,
+def _seed_offsets(done: Done, seed: int) -> Iterator[int]:
+    """Offsets i of the seeds seed+i still to attempt, in order: the ones --out already holds are skipped."""
+    skip = done.seeds
+    return (i for i in itertools.count() if seed + i not in skip)
+
+
+def _drive(runner: Runner, opts: GenerateOptions, journal: Journal, batch: int, max_attempts: int,
            summary: GenerateSummary) -> None:
     """Hand out batches of seeds as they are needed and take their attempts in seed order."""
-    next_seed = 0  # attempts handed out
+    base = journal.done.base
+    offsets = _seed_offsets(journal.done, opts.seed)
+    need = opts.num - summary.resumed_from
+    handed = 0  # attempts handed out
     in_flight = 2 * runner.workers
     columns = (TextColumn("generate"), BarColumn(), MofNCompleteColumn(), TextColumn("kept · {task.fields[info]}"),
                TimeRemainingColumn())
     with Progress(*columns, disable=not opts.progress, transient=False,
                   console=Console(stderr=True)) as bar:
-        task = bar.add_task("generate", total=opts.num, info="")
-        while summary.successes < opts.num:
-            while runner.running < in_flight and next_seed < max_attempts:
+        task = bar.add_task("generate", total=opts.num, info="", completed=summary.resumed_from)
+        while summary.successes < need:
+            while runner.running < in_flight and handed < max_attempts:
                 # Hand out only the attempts still expected to be needed: near the end, work beyond
                 # --num successes would be thrown away (the rate is estimated from the attempts so far).
                 rate = (summary.successes + 1) / (summary.attempts + 1)
-                deficit = math.ceil((opts.num - summary.successes) / rate) - (next_seed - summary.attempts)
+                deficit = math.ceil((need - summary.successes) / rate) - (handed - summary.attempts)
                 if deficit <= 0:
                     break
-                size = max(1, min(batch, math.ceil(deficit / runner.workers), max_attempts - next_seed))
-                runner.submit(run_batch, runner.shared, [(opts.seed + i, base + i) for i in range(next_seed, next_seed + size)])
-                next_seed += size
+                size = max(1, min(batch, math.ceil(deficit / runner.workers), max_attempts - handed))
+                chosen = [next(offsets) for _ in range(size)]
+                runner.submit(run_batch, runner.shared, [(opts.seed + i, base + i) for i in chosen])
+                handed += size
             if not runner.pending:
                 break
             runner.wait()
             for attempts in runner.ready():
                 for attempt in attempts:
-                    if summary.successes >= opts.num:
+                    if summary.successes >= need:
                         break
-                    _take(attempt, opts, summary)
-                if summary.successes >= opts.num:
+                    _take(attempt, opts, journal, summary)
+                if summary.successes >= need:
                     break
             rate = summary.successes / summary.attempts if summary.attempts else 0.0
-            bar.update(task, completed=summary.successes,
+            bar.update(task, completed=summary.resumed_from + summary.successes,
                        info=f"{summary.attempts} attempts, {rate:.0%} success")
 
 
-def _take(attempt: Attempt, opts: GenerateOptions, summary: GenerateSummary) -> None:
-    """Count one attempt in seed order and write what is kept."""
+def _take(attempt: Attempt, opts: GenerateOptions, journal: Journal, summary: GenerateSummary) -> None:
+    """Count one attempt in seed order, write what is kept, then journal it."""
+    directory = opts.out if attempt.success else opts.out / "failures"  # failures: success false inside, kept apart
+    written = []
+    if attempt.files:
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            for name, data in attempt.files:
+                # NAME.part, then a rename: a killed run or a full disk never leaves a half file under an episode's name
+                written.append(write_bytes_whole(directory / name, data))
+        except OSError as exc:
+            for path in written:  # one format of two is not an episode (a re-run makes both again)
+                path.unlink(missing_ok=True)
+            raise write_error(directory, exc) from None
     summary.attempts += 1
     if attempt.bit_exact is False:
         summary.not_bit_exact += 1
     if attempt.success:
         summary.successes += 1
         summary.seeds.append(attempt.seed)
-        directory = opts.out
     elif attempt.files:
         summary.failures_kept += 1
-        directory = opts.out / "failures"  # marked twice: success false inside, and kept apart
-    else:
-        return
-    directory.mkdir(parents=True, exist_ok=True)
-    for name, data in attempt.files:
-        path = directory / name
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)  # a killed run never leaves a half file under an episode's name
-        summary.files.append(str(path))
+    summary.files.extend(map(str, written))
+    journal.record(attempt.seed, attempt.success, written)
+    if attempt.success and summary.successes == 1 and not opts.force:
+        _check_space(opts, sum(len(data) for _, data in attempt.files), opts.num - summary.resumed_from - 1)
 
 
-__all__ = ["GenerateError", "GenerateOptions", "GenerateSummary", "generate", "load_sources", "run_batch"]
+def _check_space(opts: GenerateOptions, per_episode: int, more: int) -> None:
+    """After the first kept episode: stop when the rest clearly will not fit (NotEnoughSpace, one line)."""
+    if more > 0:
+        check_free_space(opts.out, per_episode * more, f"{more} more episodes of ~{per_episode / 1000:.0f} KB")
+
+
+__all__ = ["GenerateError", "GenerateOptions", "GenerateSummary", "NotEnoughSpace", "generate", "load_sources",
+           "run_batch"]

@@ -31,10 +31,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 import numpy as np
 
+from recorder import RecorderError
 from replay.annotate import FAILURE_REASONS, progress_of
 from replay.export.frames import feature_key
 from scenes import RobotSpec
-from scenes.errors import TeleopError
+from scenes.errors import TeleopError, first_line
 from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
 from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
 from teleop.control.recording import Recorder, arm_metas
@@ -111,6 +112,7 @@ class EvalSummary:
     step_seconds: float = 0.0  # wall time in env.step and the policy, the rate's denominator
     record: str | None = None
     interrupted: bool = False
+    error: str = ""  # the recording's write error that stopped it ('<file>: <cause>'), "" when none
 
     @property
     def episodes(self) -> int:
@@ -169,6 +171,7 @@ class EvalSummary:
             "wall_seconds": round(self.wall_seconds, 3),
             "record": self.record,
             "interrupted": self.interrupted,
+            "error": self.error,
         }
 
     def lines(self) -> list[str]:
@@ -327,6 +330,11 @@ def evaluate(policy: Policy, opts: EvalOptions) -> EvalSummary:
                 summary.interrupted = True
                 if recorder is not None and recorder.recording:
                     recorder.save(complete=False)
+            except RecorderError as exc:  # a full disk: the rollouts recorded before stay whole, the cut one
+                summary.error = first_line(exc)  # opens and says it is cut; the report so far goes with the error
+                summary.wall_seconds = time.perf_counter() - wall0
+                exc.summary = summary  # type: ignore[attr-defined]
+                raise
         summary.wall_seconds = time.perf_counter() - wall0
         return summary
     finally:

@@ -1,0 +1,50 @@
+"""A normal (non-editable) install has every file the code opens: the wheel is built and compared
+with the repository.
+
+Every file tracked by git under the installed packages (teleop/, devices/, recorder/,
+replay/, scenes/) must be in the wheel: code, and the data it opens at run time (robot
+MJCF, scripts, the page's JavaScript and HTML, meshes and their convex parts, task
+files). A file kind left out of pyproject.toml's package-data fails here by name.
+.ci/wheel_check.sh then installs that wheel into a fresh environment and uses it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("teleop", "devices", "recorder", "replay", "scenes")
+pytestmark = pytest.mark.e2e
+
+
+def tracked_package_files() -> set[str]:
+    out = subprocess.run(["git", "ls-files", *PACKAGES], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    return {line for line in out.splitlines() if line and (ROOT / line).is_file()}
+
+
+def test_the_wheel_holds_every_file_of_the_packages(tmp_path):
+    # Built from a clean copy of the checkout: setuptools' build/ folder would keep files from earlier builds.
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True,
+                            check=True).stdout.splitlines()
+    source = tmp_path / "src"
+    for name in listed:
+        if (ROOT / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, source / name)
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", str(source), "-w", str(tmp_path)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert build.returncode == 0, build.stderr[-2000:]
+    (wheel,) = tmp_path.glob("mujoco_teleop-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    missing = sorted(tracked_package_files() - names)
+    assert not missing, "not in the wheel (add them to [tool.setuptools.package-data]):\n" + "\n".join(missing)
+    assert "teleop/web/phone.html" in names and "scenes/robots/panda.xml" in names  # the two that went missing once
+    assert not any(n.startswith(("tests/", "bench/")) for n in names)  # they stay in the checkout
