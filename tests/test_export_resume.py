@@ -122,3 +122,48 @@ def test_resume_refuses_other_options_and_a_finished_dataset(episodes, tmp_path)
         "options": {"repo_id": "test/resume", "action": "ee_pose"}, "done": 2, "files": {}, "snapshot": "meta_snapshot.2"}))
     other = _export(episodes, out, "--resume")
     assert other.returncode == 2 and "other options" in other.stderr and "Traceback" not in other.stderr
+
+
+def test_a_killed_parallel_export_resumes_into_the_uninterrupted_dataset(episodes, tmp_path):
+    """`--workers 2`: shards in `.NAME.parts/` beside the dataset; after kill -9 the whole shards are kept,
+    a shard cut short continues from its last whole piece, and the merge gives the uninterrupted dataset."""
+    from replay.export.shards import parts_dir
+
+    whole = _export(episodes, tmp_path / "whole", "--workers", "2")
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    assert not parts_dir(tmp_path / "whole").exists()
+
+    out = tmp_path / "killed"
+    proc = _export(episodes, out, "--workers", "2", wait=False)
+    parts = parts_dir(out)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:  # a shard has a whole piece
+        if any(json.loads(m.read_text())["done"] >= 2 for m in parts.glob(".shard_*.export/manifest.json")
+               if m.stat().st_size):
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the export ended before it could be killed: " + proc.stderr.read()[-2000:]
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    proc.stdout.close()
+    proc.stderr.close()
+    time.sleep(1.0)  # the workers see their parent gone and exit
+    assert (parts / "plan.json").is_file()
+
+    again = _export(episodes, out, "--workers", "2")
+    assert again.returncode == 2 and "--resume" in again.stderr and "Traceback" not in again.stderr
+
+    resumed = _export(episodes, out, "--workers", "2", "--resume")
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resuming" in resumed.stderr and not parts.exists()
+    info_a, rows_a = _frames(tmp_path / "whole")
+    info_b, rows_b = _frames(out)
+    assert info_a["features"] == info_b["features"] and len(rows_a) == len(rows_b)
+    for a, b in zip(rows_a, rows_b, strict=True):
+        for key in a:
+            if isinstance(a[key], np.ndarray):
+                np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+            else:
+                assert a[key] == b[key], key
+    stats_a = json.loads((tmp_path / "whole" / "meta" / "stats.json").read_text())
+    assert stats_a == json.loads((out / "meta" / "stats.json").read_text())

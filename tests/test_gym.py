@@ -72,7 +72,9 @@ def test_spaces_are_the_exports_features():
     try:
         obs, info = env.reset(seed=4)
         space = env.observation_space
-        assert set(obs) == {"observation.state", "observation.ee_pose", "observation.images.front", "observation.images.wrist"}
+        assert set(obs) == {"observation.state", "observation.ee_pose", "observation.environment_state",
+                            "observation.images.front", "observation.images.wrist"}
+        assert env.features["observation.environment_state"]["names"][:3] == ["cube.x", "cube.y", "cube.z"]
         assert obs["observation.images.front"].shape == (24, 40, 3) and obs["observation.images.front"].dtype == np.uint8
         assert obs["observation.state"].dtype == np.float32 and obs["observation.state"].shape == (8,)
         for key, ft in env.features.items():
@@ -89,11 +91,21 @@ def test_cameras_none_observes_vectors_only_and_render_uses_the_front_camera():
     env = tg.make_env("door", "ur5e", cameras=(), image_size=SMALL, render_mode="rgb_array")
     try:
         obs, _ = env.reset()
-        assert set(obs) == {"observation.state", "observation.ee_pose"}
+        assert set(obs) == {"observation.state", "observation.ee_pose", "observation.environment_state"}
+        assert obs["observation.environment_state"].shape == (7,)  # the door leaf's pose
         frame = env.render()
         assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8 and frame.std() > 0
     finally:
         env.close()
+        env.close()
+
+
+def test_object_state_false_leaves_the_environment_state_out():
+    env = tg.make_env("lift", "panda", cameras=(), object_state=False)
+    try:
+        obs, _ = env.reset(seed=0)
+        assert set(obs) == {"observation.state", "observation.ee_pose"} and "observation.environment_state" not in env.features
+    finally:
         env.close()
 
 

@@ -360,8 +360,6 @@ def check_options(opts: ExportOptions) -> None:
     if is_interrupted(opts.out) and not opts.resume:
         raise ExportError(f"{opts.out} holds an export that was interrupted: add --resume to continue it "
                           "(or remove the directory)")
-    if opts.resume and (opts.workers > 1 or opts.ray is not None):
-        raise ExportError("--resume continues an export in one process: leave out workers/Ray")
     if opts.out.exists() and not opts.append and not opts.resume:
         raise ExportError(f"{opts.out} already exists (append the episodes to it, or choose a new directory)")
     if isinstance(opts.piece_episodes, bool) or not isinstance(opts.piece_episodes, int) or opts.piece_episodes < 1:

@@ -18,6 +18,7 @@ import contextlib
 import importlib.util
 import io
 import itertools
+import json
 import multiprocessing
 import shutil
 import sys
@@ -41,6 +42,7 @@ from replay.export.dataset import (
     wants_intervention,
 )
 from replay.export.lerobot_io import LEROBOT_HINT, ExportError, dir_size, load_lerobot
+from replay.export.pieces import is_interrupted
 
 # Two shards per worker even out episodes of different lengths, once there are enough episodes for
 # that to matter; each shard costs ~1 s more in the merge (LeRobot loads its episode metadata).
@@ -132,6 +134,66 @@ def _untar(data: bytes, directory: Path) -> None:
         tar.extractall(directory, filter="data")
 
 
+# -- resuming: the parts folder beside the dataset ---------------------------------------------
+# A parallel export writes its shards into `.NAME.parts/` beside the dataset, with plan.json (the
+# episodes, the options, which episodes each shard holds) and `shard_NNN.done` once a shard is whole.
+# A handled end (done, Ctrl-C, an error) removes the folder; after a kill -9 it stays, and --resume
+# exports only what is missing: whole shards are kept, a shard cut short continues from its last
+# whole piece, and the merge runs again.
+
+
+def parts_dir(out: Path) -> Path:
+    return out.parent / f".{out.name}.parts"
+
+
+def _plan_options(opts: ExportOptions) -> dict:
+    keys = ("repo_id", "cameras", "image_size", "action", "task", "only_success", "video", "vcodec", "object_state",
+            "piece_episodes")
+    return {k: (list(v) if isinstance(v := getattr(opts, k), tuple) else v) for k in keys}
+
+
+def _parts(opts: ExportOptions, chosen: list, runs: list[range], log: Callable[[str], None]
+           ) -> tuple[Path, list[range], dict[int, ExportSummary]]:
+    """The parts folder, the shards' episode runs, and the shards already whole (when resuming)."""
+    parts = parts_dir(opts.out)
+    episodes = [str(Path(e.path).resolve()) for e in chosen]
+    plan_file = parts / "plan.json"
+    if not plan_file.is_file():
+        if opts.resume:
+            raise ExportError(f"--resume: {opts.out} holds no interrupted parallel export (no {parts.name}/plan.json)")
+        shutil.rmtree(parts, ignore_errors=True)
+        parts.mkdir()
+        plan = {"episodes": episodes, "options": _plan_options(opts), "runs": [[r.start, r.stop] for r in runs]}
+        tmp = parts / "plan.json.tmp"
+        tmp.write_text(json.dumps(plan))
+        tmp.replace(plan_file)
+        return parts, runs, {}
+    if not opts.resume:
+        raise ExportError(f"{opts.out} holds a parallel export that was interrupted: add --resume to continue it "
+                          f"(or remove {parts})")
+    plan = json.loads(plan_file.read_text())
+    if plan["episodes"] != episodes or plan["options"] != _plan_options(opts):
+        raise ExportError(f"--resume: {opts.out} was exported from other episodes or options; give the same ones")
+    runs = [range(a, b) for a, b in plan["runs"]]
+    finished = {}
+    for i in range(len(runs)):
+        done = parts / f"shard_{i:03d}.done"
+        if done.is_file():
+            finished[i] = ExportSummary(out=parts / f"shard_{i:03d}", **json.loads(done.read_text()))
+    if opts.out.exists():  # killed while merging: the merge runs again
+        shutil.rmtree(opts.out)
+    log(f"resuming {opts.out}: {len(finished)} of {len(runs)} shards were exported whole")
+    return parts, runs, finished
+
+
+def _mark_done(shard: "_Shard", result: ExportSummary) -> None:
+    fields = {"episodes": result.episodes, "frames": result.frames, "fps": result.fps, "backend": result.backend,
+              "dataset_episodes": result.dataset_episodes}
+    tmp = shard.out.parent / f"shard_{shard.index:03d}.done.tmp"
+    tmp.write_text(json.dumps(fields))
+    tmp.replace(shard.out.parent / f"shard_{shard.index:03d}.done")
+
+
 # -- the driver -------------------------------------------------------------
 
 
@@ -155,9 +217,9 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     runs = split([e.steps for e in chosen], shard_count(len(chosen), parallel))
     # The shards' own settings: what the driver resolved, no progress or callbacks of their own.
     shard_opts = replace(opts, cameras=summary.cameras, only_success=False, progress=False, on_episode=None,
-                         workers=1, ray=None, append=False, intervention=wants_intervention(opts, chosen))
+                         workers=1, ray=None, append=False, resume=False, intervention=wants_intervention(opts, chosen))
     opts.out.parent.mkdir(parents=True, exist_ok=True)
-    parts = Path(tempfile.mkdtemp(prefix=opts.out.name + ".parts.", dir=opts.out.parent))
+    parts, runs, finished = _parts(opts, chosen, runs, log)
     shards = [_Shard(i, [chosen[k].path for k in run], sum(chosen[k].steps for k in run), parts / f"shard_{i:03d}")
               for i, run in enumerate(runs)]
     bar = _bar(opts, sum(s.frames for s in shards), len(shards), parallel)
@@ -167,7 +229,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
             progress = multiprocessing.get_context("spawn").Queue()
             runner = _runner(opts, min(parallel, len(shards)), cancel, progress)
         with runner:
-            results, interrupted, t0 = _run(runner, shards, shard_opts, bar, progress)
+            results, interrupted, t0 = _run(runner, shards, shard_opts, bar, progress, finished)
         keep = _prefix(shards, results)
         summary.interrupted = interrupted or len(keep) < len(shards)
         bar.set_description("merging shards")
@@ -216,9 +278,9 @@ def _prefix(shards: list[_Shard], results: list[ExportSummary | None]) -> list[t
     for shard, result in zip(shards, results):
         if result is None:
             break
-        if result.episodes and shard.out.exists():
+        if result.episodes + result.resumed_from and shard.out.exists():
             keep.append((shard.index, result))
-        if result.interrupted or result.episodes < len(shard.files):
+        if result.interrupted or result.episodes + result.resumed_from < len(shard.files):
             break
     return keep
 
@@ -253,15 +315,20 @@ def _runner(opts: ExportOptions, workers: int, cancel: threading.Event | None, p
         raise ExportError(str(exc)) from None
 
 
-def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progress) -> tuple[list, bool, float]:
+def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progress,
+         finished: dict[int, ExportSummary]) -> tuple[list, bool, float]:
     """Each shard's summary (None where it did not run), whether interrupted, and when the workers were ready.
+
+    `finished`: shards an interrupted run already exported whole (--resume); the others run, a shard
+    that was cut short continuing from its last whole piece (its journal).
 
     Start-up (spawn, LeRobot's import: seconds) is timed apart from the export, as in one
     process. On Ray at most 2 x the workers' shards are in flight (each holds its episodes' bytes).
     """
     ray = runner.backend == "ray"
-    results: list[ExportSummary | None] = [None] * len(shards)
-    shown = [0] * len(shards)  # frames of each shard already on the bar
+    results: list[ExportSummary | None] = [finished.get(i) for i in range(len(shards))]
+    shown = [r.frames if r is not None else 0 for r in results]  # frames of each shard already on the bar
+    todo = [s for s in shards if results[s.index] is None]
     load_lerobot()  # the driver's own import (for the merge) overlaps the workers'
     try:
         runner.wait_started()
@@ -272,20 +339,28 @@ def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progres
         bar.set_description(f"{len(shards)} shards on {runner.workers} workers")
         bar.reset()  # the rate counts from here, not from the workers' start-up
 
+    bar.update(sum(shown))
+
     def calls():
-        for s in shards:
+        for s in todo:
             if ray:
+                shutil.rmtree(s.out, ignore_errors=True)  # a Ray shard comes back whole or not at all
                 yield _ray_shard, [(f.name, f.read_bytes()) for f in s.files], opts
             else:
-                yield _export_shard, s.files, replace(opts, out=s.out), s.index, runner.cancel_arg
+                if s.out.exists() and not is_interrupted(s.out):
+                    shutil.rmtree(s.out)  # whole, but killed before it was marked done: exported again
+                yield _export_shard, s.files, replace(opts, out=s.out, resume=is_interrupted(s.out)), s.index, runner.cancel_arg
 
-    def take(index: int, result) -> None:
+    def take(position: int, result) -> None:
+        index = todo[position].index
         if ray:
             result, blob = result
             if blob:
                 shards[index].out.mkdir(parents=True)
                 _untar(blob, shards[index].out)
         results[index] = result
+        if not result.interrupted:
+            _mark_done(shards[index], result)
         bar.update(result.frames - shown[index])
         shown[index] = result.frames
 
