@@ -81,15 +81,17 @@ case "$first" in
         make_venv "test,lerobot,train,cluster"
         robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
-        if [ -n "${TELEOP_CI_CHECKS:-}" ]; then  # CI: the linter and a normal (non-editable) install, before the tests
-            "$VENV/bin/ruff" check .
-            bash .ci/wheel_check.sh "$VENV/bin/python"
-        fi
+        checks=0  # CI: the linter and a normal (non-editable) install before the tests; the tests run either way
         set +e
+        if [ -n "${TELEOP_CI_CHECKS:-}" ]; then
+            "$VENV/bin/ruff" check . || { echo "run.sh: ruff check found problems (above)" >&2; checks=1; }
+            bash .ci/wheel_check.sh "$VENV/bin/python" || { echo "run.sh: the wheel check failed (above)" >&2; checks=1; }
+        fi
         "$VENV/bin/python" -m pytest "$@"
         rc=$?
         set -e
         if [ "$rc" = 5 ]; then echo "run.sh: pytest collected no tests: that is a failure" >&2; exit 1; fi
+        if [ "$rc" = 0 ] && [ "$checks" != 0 ]; then echo "run.sh: the tests passed but a CI check failed" >&2; exit 1; fi
         exit "$rc"
         ;;
     serve)

@@ -11,27 +11,33 @@ serve_pid=""
 cleanup() { [ -n "$serve_pid" ] && kill "$serve_pid" 2>/dev/null; rm -rf "$work"; }
 trap cleanup EXIT
 say() { echo "wheel check: $*" >&2; }
+fail() { say "FAILED: $*"; exit 1; }
 # From a clean copy: setuptools' build/ folder in the checkout could hold files of an earlier build.
 mkdir "$work/src"
 (cd "$root" && git ls-files -co --exclude-standard | while read -r f; do [ -f "$f" ] && printf '%s\0' "$f"; done) \
     | (cd "$root" && xargs -0 cp --parents -t "$work/src")
-"$python" -m pip wheel --no-deps -q "$work/src" -w "$work/dist"
+"$python" -m pip wheel --no-deps --no-build-isolation -q "$work/src" -w "$work/dist" || fail "pip wheel could not build the package"
 wheel=$(ls "$work"/dist/mujoco_teleop-*.whl)
 say "built $(basename "$wheel")"
-"$python" -m venv "$work/venv"
-"$work/venv/bin/python" -m pip install -q "$wheel"
+"$python" -m venv "$work/venv" || fail "python -m venv failed"
+"$work/venv/bin/python" -m pip install -q "$wheel" || fail "pip install of the wheel (core dependencies only) failed"
 say "installed it (not editable) into a fresh venv"
 teleop="$work/venv/bin/teleop"
-site=$("$work/venv/bin/python" -c 'import scenes, pathlib; print(pathlib.Path(scenes.__file__).parent)')
 cd "$work"  # outside the checkout: only the installed package can be found
+site=$("$work/venv/bin/python" -c 'import scenes, pathlib; print(pathlib.Path(scenes.__file__).parent)')
+case "$site" in "$work/venv/"*) ;; *) fail "scenes was imported from $site, not from the fresh venv";; esac
 export MUJOCO_GL=${MUJOCO_GL:-egl}
-scenes=$("$teleop" scenes)
-grep -q '^lift' <<< "$scenes" || { say "teleop scenes does not list lift: $scenes"; exit 1; }
+scenes=$("$teleop" scenes) || fail "teleop scenes exited with $?"
+grep -q '^lift' <<< "$scenes" || fail "teleop scenes does not list lift: $scenes"
 say "teleop scenes: ok"
-"$teleop" run --device "script:$site/scripts/lift_pick.json" --scene lift --record "$work/eps" --json > "$work/run.json"
-grep -q '"success": true' "$work/run.json" || { say "the scripted run did not succeed: $(cat "$work/run.json")"; exit 1; }
-"$teleop" replay "$work/eps/episode_000000.mcap" --verify --json > "$work/verify.json"
-say "teleop run + replay --verify (bit-exact): ok"
+"$teleop" run --device "script:$site/scripts/lift_pick.json" --scene lift --record "$work/eps" --json > "$work/run.json" \
+    || fail "teleop run (scripted, recording) exited with $?"
+grep -q '"success": true' "$work/run.json" || fail "the scripted run did not succeed: $(cat "$work/run.json")"
+say "teleop run --device script:.../lift_pick.json --record: ok (success)"
+"$teleop" replay "$work/eps/episode_000000.mcap" --verify --json > "$work/verify.json" \
+    || fail "teleop replay --verify exited with $?: $(cat "$work/verify.json")"
+grep -q '"bit_exact": true' "$work/verify.json" || fail "the replay is not bit-exact: $(cat "$work/verify.json")"
+say "teleop replay --verify: ok (bit-exact)"
 port=$("$work/venv/bin/python" -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
 "$teleop" serve --port "$port" > "$work/serve.log" 2>&1 &
 serve_pid=$!
@@ -47,11 +53,16 @@ except OSError:
 for _ in $(seq 1 120); do
     code=$(status "http://127.0.0.1:$port/")
     [ "$code" = 200 ] && break
-    kill -0 "$serve_pid" 2>/dev/null || { say "teleop serve exited: $(tail -3 "$work/serve.log")"; exit 1; }
+    kill -0 "$serve_pid" 2>/dev/null || fail "teleop serve exited: $(tail -3 "$work/serve.log")"
     sleep 0.5
 done
 for page in / /phone; do
     code=$(status "http://127.0.0.1:$port$page")
-    [ "$code" = 200 ] || { say "GET $page answered $code"; exit 1; }
+    [ "$code" = 200 ] || fail "teleop serve: GET $page answered $code: $(tail -3 "$work/serve.log")"
 done
 say "teleop serve: / and /phone answer 200"
+kill -INT "$serve_pid"  # as Ctrl-C
+rc=0; wait "$serve_pid" || rc=$?
+serve_pid=""
+[ "$rc" = 0 ] || fail "teleop serve exited with $rc on Ctrl-C: $(tail -3 "$work/serve.log")"
+say "teleop serve: stopped by Ctrl-C (exit 0)"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -97,12 +98,30 @@ def _uses_chromium(item: pytest.Item) -> bool:
     return "headless.launch" in source or "sync_playwright" in source
 
 
+# A test elsewhere is e2e too when it uses a real X server (the xvfb fixture), kills a process with SIGKILL,
+# or runs `teleop export` (LeRobot), `generate` or `eval` in a subprocess; a slow one of another kind is marked
+# `@pytest.mark.e2e` where it is defined.
+E2E_FIXTURES = {"xvfb"}
+E2E_SOURCE = re.compile(r"SIGKILL|\bkill -9\b|\(\s*[\"'](export|generate|eval)[\"']\s*,")
+
+
+def _is_e2e(item: pytest.Item) -> bool:
+    import inspect
+
+    if item.get_closest_marker("e2e") or item.path.name in E2E_FILES or E2E_FIXTURES & set(getattr(item, "fixturenames", ())):
+        return True
+    try:
+        return bool(E2E_SOURCE.search(inspect.getsource(item.function)))
+    except (OSError, TypeError, AttributeError):
+        return False
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test gets exactly one of the markers unit, browser, e2e (browser wins over e2e)."""
     for item in items:
         if item.get_closest_marker("browser") or _uses_chromium(item):
             item.add_marker(pytest.mark.browser)
-        elif item.get_closest_marker("e2e") or item.path.name in E2E_FILES:
+        elif _is_e2e(item):
             item.add_marker(pytest.mark.e2e)
         else:
             item.add_marker(pytest.mark.unit)

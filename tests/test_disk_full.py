@@ -153,7 +153,7 @@ def test_run_on_a_full_disk_stops_with_one_line_and_keeps_every_episode(tmp_path
             assert done.returncode == 0, f"{path.name}: {done.stderr[-2000:]}"
             info = json.loads(done.stdout)
             assert not info["complete"] and (info["truncated"] or not info["success"]), info
-            assert 0 <= info["steps"] < 144, info
+            assert 0 <= info["steps"] <= 144, info  # cut while closing: every step, but no clean end
 
 
 def test_hdf5_cut_file_keeps_its_flushed_rows_and_an_honest_count(tmp_path):

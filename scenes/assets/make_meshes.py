@@ -111,6 +111,7 @@ MESHES: dict[str, Callable[[], trimesh.Trimesh]] = {
 }
 
 DRAWER_XML = """<mujoco model="drawer_cabinet">
+  <compiler angle="radian"/>
   <!-- A cabinet with one drawer that slides out toward -x (the robot); written by make_meshes.py.
        Frame: origin on the table under the cabinet's centre; the drawer joint is 0 when shut.
        Names: the drawer body `drawer`, its joint `drawer_slide` (0 to 0.12 m), its handle geom
@@ -147,6 +148,7 @@ DRAWER_XML = """<mujoco model="drawer_cabinet">
 """
 
 CABINET_DOOR_XML = """<mujoco model="cabinet_door">
+  <compiler angle="radian"/>
   <!-- A low cupboard whose door swings open toward -x (the robot) on a hinge at +y; written by
        make_meshes.py. Frame: origin on the table under the cupboard's centre; the hinge is 0 when
        shut. Names: joint `cupboard_hinge` (0 to 1.9 rad), handle geom `cupboard_handle`, site
