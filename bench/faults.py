@@ -29,6 +29,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from tests.procs import alive as _alive, children_of as _children
+
 ROOT = Path(__file__).resolve().parent.parent
 TRIALS = 3
 GEN_NUM = 8
@@ -49,25 +51,8 @@ def _teleop(*args: str, wait: bool = True):
     return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=900)
 
 
-def _children(pid: int) -> dict[int, str]:
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                found[int(entry.name)] = fields[19]
-    return found
 
 
-def _alive(pid: int, started: str) -> bool:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return False
-    return fields[19] == started and fields[0] != "Z"
 
 
 def _kill_at_random(proc: subprocess.Popen, started: Callable[[], bool], rng: random.Random, limit_s: float = 300) -> int:

@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from tests.procs import alive as _alive, children_of as _children
+
 import mujoco
 import numpy as np
 import pytest
@@ -231,27 +233,8 @@ def test_ctrl_c_keeps_what_was_generated(sources, tmp_path):
         assert ep.meta.complete and ep.meta.success and not ep.truncated
 
 
-def _children(pid: int) -> dict[int, str]:
-    """The processes whose parent is `pid`, as {pid: start time} read from /proc (start time: against pid reuse)."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                found[int(entry.name)] = fields[19]
-    return found
 
 
-def _alive(pid: int, started: str) -> bool:
-    """Still running: the same process (same start time) and not a zombie waiting to be reaped."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return False
-    return fields[19] == started and fields[0] != "Z"
 
 
 def test_kill_9_leaves_no_orphans(sources, tmp_path):

@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from tests.procs import alive, children_of
+
 import numpy as np
 import pytest
 
@@ -49,26 +51,8 @@ def generate_argv(sources: list[Path], out: Path, *more: str) -> list[str]:
     return ["generate", *map(str, sources), "--out", str(out), "--seed", "1000", *more]
 
 
-def children_of(pid: int) -> dict[int, str]:
-    """{pid: start time} of the processes whose parent is `pid` (start time: against pid reuse)."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                found[int(entry.name)] = fields[19]
-    return found
 
 
-def alive(pid: int, started: str) -> bool:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return False
-    return fields[19] == started and fields[0] != "Z"
 
 
 def kept_seeds(directory: Path) -> list[int]:
