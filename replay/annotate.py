@@ -15,9 +15,10 @@ boundaries are those of what happened, not of what was asked.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -25,7 +26,8 @@ import numpy as np
 from recorder.annotations import AnnotationError, Subtask, from_boundaries, read_subtasks, write_subtasks
 from recorder.format import ArmMeta
 from replay.episode import Episode, load_episode
-from scenes.tasks import TASKS, SubtaskSpec
+from scenes.robot import SceneError
+from scenes.tasks import SubtaskSpec, task_for_episode
 
 CLOSED_BELOW = 0.5  # commanded gripper opening (1 open .. 0 closed) under which the gripper is closing
 SETTLED = 0.05  # gripper actuator speed, as a fraction of its ctrl range per second, under which it has stopped
@@ -35,9 +37,13 @@ class NoGraspError(AnnotationError):
     """A source episode in which a subtask's gripper event never happens (named in the message)."""
 
 
-def task_subtasks(scene: str) -> tuple[SubtaskSpec, ...]:
-    """The subtasks the scene's task declares; AnnotationError if it declares none."""
-    task = TASKS.get(scene)
+def task_subtasks(scene: str, extra: Mapping[str, Any] | None = None) -> tuple[SubtaskSpec, ...]:
+    """The subtasks the scene's task declares (from the episode's embedded task file, `extra`, when it has one);
+    AnnotationError if it declares none."""
+    try:
+        task = task_for_episode(scene, extra)
+    except SceneError:
+        task = None
     if task is None or not task.subtasks:
         raise AnnotationError(f"task {scene!r} declares no subtasks to annotate")
     return task.subtasks
@@ -112,7 +118,7 @@ def auto_subtasks(episode: Episode, specs: Sequence[SubtaskSpec] | None = None, 
 
     Raises NoGraspError naming the file when a grasp (or release) never happens.
     """
-    specs = tuple(specs if specs is not None else task_subtasks(episode.meta.scene))
+    specs = tuple(specs if specs is not None else task_subtasks(episode.meta.scene, episode.meta.extra))
     name = episode.path.name
     steps = episode.steps
     if steps < len(specs):

@@ -95,7 +95,7 @@ def even_split(objects: Sequence[str], steps: int) -> list[Subtask]:
 def object_choices(episode: Episode, model: mujoco.MjModel) -> list[str]:
     """Reference objects a subtask may name: the task's declared ones, then the scene's bodies off the robot."""
     try:
-        declared = [spec.object for spec in task_subtasks(episode.meta.scene)]
+        declared = [spec.object for spec in task_subtasks(episode.meta.scene, episode.meta.extra)]
     except AnnotationError:
         declared = []
     robot = set()
@@ -136,7 +136,7 @@ def initial_subtasks(episode: Episode, choices: Sequence[str]) -> tuple[list[Sub
     except (AnnotationError, KeyError, IndexError, ValueError) as exc:
         problem += f"not found automatically ({first_line(exc)}). "
     try:
-        objects = [spec.object for spec in task_subtasks(episode.meta.scene)]
+        objects = [spec.object for spec in task_subtasks(episode.meta.scene, episode.meta.extra)]
     except AnnotationError:
         objects = list(choices[:1]) or ["world"]
     return even_split(objects, steps), problem + "split evenly", False
