@@ -25,6 +25,7 @@ class Layout:
     table_half: tuple[float, float]  # table half extents (x, y)
     table_center: tuple[float, float]
     bimanual: bool
+    reach: float = 0.0  # the robot's reach (m), a length unit task files may use
 
 
 def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = None) -> mujoco.MjSpec:
@@ -81,7 +82,7 @@ def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = Non
     return spec
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> list[float]:
+def look_at_xyaxes(eye: np.ndarray, target: np.ndarray) -> list[float]:
     """xyaxes for a camera at `eye` looking at `target` with world z up."""
     forward = target - eye
     forward /= np.linalg.norm(forward)
@@ -103,9 +104,16 @@ def _add_cameras(world: mujoco.MjsBody, layout: Layout) -> None:
     else:
         target = np.array([0.6 * cx, cy, TABLE_TOP + 0.35 * cx])
         front_eye = np.array([cx + 1.5 * dist, cy + 0.6 * dist, TABLE_TOP + 0.9 * dist])
-    world.add_camera(name="front", pos=front_eye, xyaxes=_look_at(front_eye, target), fovy=50)
+    world.add_camera(name="front", pos=front_eye, xyaxes=look_at_xyaxes(front_eye, target), fovy=50)
     over_eye = np.array([cx, cy, TABLE_TOP + 1.5 * dist])
     world.add_camera(name="overhead", pos=over_eye, xyaxes=[0, -1, 0, 1, 0, 0] if not layout.bimanual else [1, 0, 0, 0, 1, 0], fovy=45)
+
+
+def reference_layout() -> Layout:
+    """The layout of a 0.85 m reach arm with 0.02 m cubes (Panda): task files are checked against it."""
+    reach = 0.85
+    return Layout(center=(0.55 * reach, 0.0), spread=0.18 * reach, size=0.02, table_half=(0.5 * reach + 0.35, 0.7 * reach + 0.1),
+                  table_center=(0.5 * reach - 0.1, 0.0), bimanual=False, reach=reach)
 
 
 def yaw_quat(yaw: float) -> list[float]:

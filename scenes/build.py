@@ -17,7 +17,7 @@ import numpy as np
 from scenes.arena import TABLE_TOP, Layout, make_arena, yaw_quat
 from scenes.errors import first_line
 from scenes.robot import ArmSpec, RobotSpec, SceneError, load_robot
-from scenes.tasks import TASKS, Task
+from scenes.tasks import Task, find_task
 
 
 @dataclass
@@ -50,10 +50,22 @@ class Scene:
                     data.ctrl[act] = value
             if arm.gripper is not None:
                 data.ctrl[self.model.actuator(arm.gripper.actuator).id] = arm.gripper.open
+        for name, value in self.task.initial_joints().items():
+            data.qpos[self.model.joint(name).qposadr[0]] = value
         mujoco.mj_forward(self.model, data)
 
     def success(self, data: mujoco.MjData) -> bool:
         return self.task.success(self.model, data)
+
+    def observe(self, data: mujoco.MjData) -> None:
+        """Called after every control tick: a task with a `hold` times how long its success has held."""
+        if self.task.hold > 0:
+            self.task.success(self.model, data)
+
+    @property
+    def instruction(self) -> str:
+        """The task's instruction for this seed (one of its paraphrases; episodes store it as `task`)."""
+        return self.task.instruction_for(self.seed)[0]
 
 
 def actuator_for_joint(model: mujoco.MjModel, joint: str) -> int | None:
@@ -65,16 +77,17 @@ def actuator_for_joint(model: mujoco.MjModel, joint: str) -> int | None:
     return None
 
 
-def _layout(robot: RobotSpec) -> Layout:
+def layout_for(robot: RobotSpec) -> Layout:
+    """Where `robot`'s tasks happen: the workspace centre, placement spread and cube size, from its reach."""
     size = robot.object_size
     if robot.bimanual:
         half_gap = abs(robot.mounts[0].pos[0])
         return Layout(center=(0.0, 0.0), spread=0.25 * half_gap, size=size,
-                      table_half=(half_gap + 0.2, 0.6), table_center=(0.0, 0.0), bimanual=True)
+                      table_half=(half_gap + 0.2, 0.6), table_center=(0.0, 0.0), bimanual=True, reach=robot.reach)
     reach = robot.reach
     center = (0.55 * reach, 0.0)
     return Layout(center=center, spread=0.18 * reach, size=size,
-                  table_half=(0.5 * reach + 0.35, 0.7 * reach + 0.1), table_center=(0.5 * reach - 0.1, 0.0), bimanual=False)
+                  table_half=(0.5 * reach + 0.35, 0.7 * reach + 0.1), table_center=(0.5 * reach - 0.1, 0.0), bimanual=False, reach=reach)
 
 
 def _inline_assets(spec: mujoco.MjSpec, base_dir: Path) -> dict[str, bytes]:
@@ -220,14 +233,11 @@ def _user_reach(spec: mujoco.MjSpec, arm: ArmSpec) -> float:
     return 0.85 * best
 
 
-def build_scene(task: str | Task, robot: str | Path | RobotSpec, seed: int = 0, timestep: float = 0.002) -> Scene:
-    """Compile `task` with `robot`, objects placed from `seed` (same seed, same scene)."""
+def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: int = 0, timestep: float = 0.002) -> Scene:
+    """Compile `task` (a name, a task file PATH.toml or a Task) with `robot`, objects placed from `seed` (same seed, same scene)."""
     if isinstance(robot, (str, Path)):
         robot = load_robot(robot)
-    if isinstance(task, str):
-        if task not in TASKS:
-            raise SceneError(f"unknown scene {task!r} (scenes: {', '.join(TASKS)})")
-        task = TASKS[task]
+    task = find_task(task)
     if not task.supports(robot.bimanual):
         kind = "bimanual" if robot.bimanual else "single-arm"
         raise SceneError(f"scene '{task.name}' does not work with the {kind} robot '{robot.name}'")
@@ -237,7 +247,7 @@ def build_scene(task: str | Task, robot: str | Path | RobotSpec, seed: int = 0, 
         from dataclasses import replace
 
         robot = replace(robot, reach=_user_reach(robot_spec, arms[0]))
-    layout = _layout(robot)
+    layout = layout_for(robot)
     if robot.bimanual:
         arena = make_arena(layout, timestep)
         final_arms = []
@@ -248,7 +258,8 @@ def build_scene(task: str | Task, robot: str | Path | RobotSpec, seed: int = 0, 
         arms = tuple(final_arms)
     else:
         arena = make_arena(layout, timestep, robot_spec)
-    task.build(arena, layout, np.random.default_rng(seed))
+    task_assets = task.build(arena, layout, np.random.default_rng(seed)) or {}
+    assets = {**assets, **task_assets}
 
     try:
         arena.compile()

@@ -5,7 +5,8 @@
     env = teleop.gym.make_env("lift", "my_arm.toml", cameras=("front",))
 
 One id per built-in scene and robot that can do it: `teleop/{scene}-{robot}-v0`
-(bimanual scenes with the bimanual robot, single-arm scenes with single arms).
+(bimanual scenes with the bimanual robot, single-arm scenes with single arms), and
+one per library task and robot its file names (LIBRARY_ENV_IDS).
 Options (`gymnasium.make` keywords, or `make_env`'s): control_hz, cameras,
 image_size (width, height), action (joint | ee_delta | ee_pose, as the export),
 max_seconds, seed, render_mode ("rgb_array"). See `teleop.learn.gym_env.TeleopEnv`.
@@ -13,12 +14,14 @@ max_seconds, seed, render_mode ("rgb_array"). See `teleop.learn.gym_env.TeleopEn
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import gymnasium
 
 from scenes import BUILTIN_ROBOTS, TASKS, RobotSpec, load_robot
+from scenes.tasks import library_tasks
 from teleop.learn.gym_env import TeleopEnv
 
 NAMESPACE = "teleop"
@@ -52,7 +55,30 @@ def register_builtin() -> list[str]:
 ENV_IDS: list[str] = register_builtin()
 
 
-def make_env(scene: str, robot: str | Path | RobotSpec = "panda", **options: Any) -> TeleopEnv:
-    """An environment for any robot, a built-in name or a PATH.toml brought by the user
+def library_pairs() -> list[tuple[str, str]]:
+    """(task, robot) for every library task file and every built-in robot its `robots` names."""
+    pairs = []
+    for name, path in library_tasks().items():
+        robots = tomllib.loads(path.read_text()).get("robots") or [r for r in BUILTIN_ROBOTS if not load_robot(r).bimanual]
+        pairs += [(name, robot) for robot in robots if robot in BUILTIN_ROBOTS]
+    return pairs
+
+
+def register_library() -> list[str]:
+    """Register (once) and list the ids of the library's tasks (`teleop/{task}-{robot}-v0`), read lazily."""
+    ids = []
+    for scene, robot in library_pairs():
+        name = env_id(scene, robot)
+        if name not in gymnasium.registry:
+            gymnasium.register(name, entry_point=ENTRY_POINT, kwargs={"scene": scene, "robot": robot})
+        ids.append(name)
+    return ids
+
+
+LIBRARY_ENV_IDS: list[str] = register_library()
+
+
+def make_env(scene: str | Path, robot: str | Path | RobotSpec = "panda", **options: Any) -> TeleopEnv:
+    """An environment for any task (a name or a task file PATH.toml) and any robot, a built-in name or a PATH.toml brought by the user
     (not wrapped: Gymnasium's checker and order-enforcing wrappers come with `gymnasium.make`)."""
     return TeleopEnv(scene, robot, **options)

@@ -34,6 +34,7 @@ def test_public_names_are_documented():
         assert obj.__doc__ and obj.__doc__.strip(), f"teleop.{name} has no docstring"
 
 
+@pytest.mark.e2e  # records, then exports through LeRobot, in a fresh interpreter
 def test_readme_example_runs_verbatim(tmp_path):
     (tmp_path / "scenes").symlink_to(ROOT / "scenes")
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}

@@ -16,7 +16,8 @@ import numpy as np
 from devices.base import Cautioned, Device, Restartable
 from devices.registry import DeviceOptions, open_devices
 from recorder import RecorderError
-from scenes import BUILTIN_ROBOTS, TASKS
+from scenes import BUILTIN_ROBOTS
+from scenes.catalog import catalog
 from scenes.errors import TeleopError
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
@@ -29,7 +30,9 @@ from teleop.control.session import Session
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("robots", help="list the built-in robots")
     p.set_defaults(func=cmd_robots)
-    p = sub.add_parser("scenes", help="list the built-in task scenes")
+    p = sub.add_parser("scenes", help="list every task (built-in and library, or the task files given) and the robots it fits")
+    p.add_argument("paths", nargs="*", metavar="PATH.toml", help="task files to check and list (default: every built-in and library task)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.set_defaults(func=cmd_scenes)
 
     p = sub.add_parser("run", help="run a session headless (scripted or keyboard/SpaceMouse) and print a summary")
@@ -68,10 +71,15 @@ def cmd_robots(args: argparse.Namespace) -> int:
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    width = max(len(n) for n in TASKS)
-    for name, task in TASKS.items():
-        arms = "bimanual only" if task.needs_bimanual else ("single-arm or bimanual" if task.allows_bimanual else "single-arm")
-        print(f"{name:<{width}}  {task.summary} ({arms})")
+    """Every task with its instruction, family, objects and the robots it builds with (each robot is built)."""
+    rows = catalog(list(args.paths) or None)
+    if args.json:
+        print_json({"task_count": len(rows), "scenes": rows})
+        return 0
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        print(f"{r['name']:<{width}}  [{r['family']}] {r['instruction']}  objects: {', '.join(r['objects'])}; "
+              f"robots: {', '.join(r['robots']) or 'none'}")
     return 0
 
 

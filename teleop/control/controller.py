@@ -276,6 +276,7 @@ class Controller:
 
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
+        self.scene.observe(self.data)  # a task whose success must hold for a while is timed every tick
 
         site_xpos = self.data.site_xpos
         errors = np.array([norm(site_xpos[a.site_id] - a.target_pos) for a in self.arms])

@@ -35,6 +35,7 @@ from recorder import EpisodeWriter, RecorderError, next_episode_index
 from recorder.format import ArmMeta, EpisodeMeta
 from replay import VerifyResult, verify_file
 from scenes.errors import first_line
+from scenes.tasks import episode_extra
 from teleop.control.controller import Controller
 from teleop.control.record_row import RowFiller
 from teleop.control.session import Session
@@ -155,7 +156,7 @@ class Recorder:
             timestep=controller.timestep,
             substeps=controller.substeps,
             seed=session.seed,
-            task=scene.task.text,
+            task=scene.instruction,
             cameras=tuple(scene.cameras),
             model_xml=scene.xml,
             assets=dict(scene.assets),
@@ -169,6 +170,7 @@ class Recorder:
             source=self.episode_source,
             devices=self.devices,
             records_control=self.control is not None,
+            extra=episode_extra(scene.task, session.seed),
         ).replace(**self.provenance)
 
     def start(self) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 
 from devices.command import Command
 from scenes import RobotSpec, Scene, build_scene, load_robot
+from scenes.tasks import Task, find_task
 from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, TickObserver, physics_split
 from teleop.errors import SessionError
 
@@ -46,21 +47,22 @@ class AttachedRecorder(TickObserver, Protocol):
 class Session:
     """A robot in a task scene, driven by Commands at `control_hz` ticks per second.
 
-    scene: a task name (`teleop scenes`); robot: a built-in name, a PATH.toml or
+    scene: a task name (`teleop scenes`), a task file PATH.toml or a Task; robot: a built-in name, a PATH.toml or
     a RobotSpec; seed: object placement (same seed, same scene); control_hz:
     control ticks per second (physics runs in equal steps of at most 2 ms).
     """
 
     def __init__(
         self,
-        scene: str = "lift",
+        scene: str | Path | Task = "lift",
         robot: str | Path | RobotSpec = "panda",
         seed: int = 0,
         control_hz: float = 30.0,
     ) -> None:
         if not (math.isfinite(control_hz) and 0 < control_hz <= 1000):
             raise SessionError(f"control rate must be between 0 and 1000 Hz, got {control_hz}")
-        self.scene_name = scene
+        self.task = find_task(scene)  # a task file is read once, not at every reset
+        self.scene_name = self.task.name
         self.robot = robot if isinstance(robot, RobotSpec) else load_robot(robot)
         self.control_hz = float(control_hz)
         self.dt = 1.0 / self.control_hz  # s per control tick
@@ -74,7 +76,7 @@ class Session:
     def load(self, seed: int) -> None:
         """Build the scene for `seed` (a new model: object placement is part of it)."""
         self.seed = int(seed)
-        self.scene: Scene = build_scene(self.scene_name, self.robot, self.seed, timestep=self.timestep)
+        self.scene: Scene = build_scene(self.task, self.robot, self.seed, timestep=self.timestep)
         self.robot = self.scene.robot  # a user's robot gets its reach measured here
         try:
             self.controller = Controller(self.scene, self.control_hz, self.stats)

@@ -21,9 +21,10 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rich.console import Console
@@ -35,6 +36,7 @@ from replay.annotate import auto_subtasks
 from replay.parallel import Runner, connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
 from scenes.errors import TeleopError, first_line
+from scenes.tasks import TASK_FILE_KEY, task_for_episode
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
 from teleop.generate.resume import Done, Journal, run_identity
 from teleop.control.loop import run_episode
@@ -69,6 +71,12 @@ class Job:
     formats: tuple[str, ...]
     keep_failures: bool
     settle_s: float = SETTLE_S
+    task_file: Mapping[str, Any] | None = None  # the sources' embedded task file (scenes.tasks.TASK_FILE_KEY), if any
+
+    def session(self, seed: int) -> Session:
+        """The scene for `seed`: from the task file the sources embed when they do, else by name."""
+        task = task_for_episode(self.scene, {TASK_FILE_KEY: self.task_file} if self.task_file else None)
+        return Session(scene=task, robot=self.robot, seed=seed, control_hz=self.control_hz)
 
     @property
     def max_steps(self) -> int:
@@ -166,7 +174,8 @@ def load_sources(paths: Iterable[str | Path], log: Callable[[str], None] | None 
     if len(objects) > 1:
         raise GenerateError(f"sources are annotated with different subtasks: {sorted(objects)}")
     ((scene, robot, hz),) = kinds
-    job = Job(scene=scene, robot=robot, control_hz=hz, sources=tuple(sources), formats=("mcap",), keep_failures=False)
+    job = Job(scene=scene, robot=robot, control_hz=hz, sources=tuple(sources), formats=("mcap",), keep_failures=False,
+              task_file=episodes[0].meta.extra.get(TASK_FILE_KEY))
     return job, sources
 
 
@@ -176,7 +185,7 @@ def load_sources(paths: Iterable[str | Path], log: Callable[[str], None] | None 
 def run_attempt(job: Job, seed: int, index: int, workdir: Path) -> Attempt:
     """Generate, record and check one seed; the episode's bytes come back if it is kept."""
     try:
-        session = Session(scene=job.scene, robot=job.robot, seed=seed, control_hz=job.control_hz)
+        session = job.session(seed)
     except TeleopError as exc:
         return Attempt(seed, index, False, 0, (), error=first_line(exc))
     rng = np.random.default_rng([seed, 0x6E6])  # which source serves each subtask, among the nearest
@@ -209,7 +218,7 @@ def run_batch(job: Job, seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
 
 def _warm_up(job: Job) -> None:
     """A local worker's start: imports and a first build of the scene, paid before the clock starts."""
-    Session(scene=job.scene, robot=job.robot, seed=0, control_hz=job.control_hz)
+    job.session(0)
 
 
 # -- the driver -----------------------------------------------------------------
@@ -257,7 +266,8 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
     if opts.ray is not None:  # before any work: a bad address is the only thing said
         connect_ray(opts.ray)
     stub, sources = load_sources(sources, log)
-    job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures)
+    job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures,
+              task_file=stub.task_file)
     max_attempts = opts.max_attempts or 10 * opts.num + 10
     try:
         journal = Journal(opts.out, run_identity(sources, opts.seed, opts.formats, opts.keep_failures,

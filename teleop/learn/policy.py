@@ -284,7 +284,7 @@ class LeRobotPolicy:
 
     def attach(self, env: "TeleopEnv") -> None:
         self.checkpoint.check(env)
-        self.task = env.unwrapped.session.scene.task.text
+        self.task = env.unwrapped.session.scene.instruction
 
     def reset(self) -> None:
         self._policy.reset()

@@ -191,7 +191,7 @@ class Panel(LoopThread):
     def _task_text(self, snap) -> str:
         s = self.app.session
         state = "**succeeding**" if snap.success else "not yet"
-        return f"**Task:** {s.scene.task.text}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
+        return f"**Task:** {s.scene.instruction}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
 
     def _policy_text(self) -> str:
         t = self.app.takeover

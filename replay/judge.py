@@ -1,0 +1,42 @@
+"""Judge a recorded episode again: its task's success test at every recorded step.
+
+The task comes from the episode alone (its embedded task file, else its scene
+name) and the model from its stored XML, so a recording made before task files
+(no task units in its model) is judged with the units of its robot's layout.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from replay.episode import Episode
+from scenes.build import layout_for
+from scenes.robot import load_robot
+from scenes.task_file import FileTask
+from scenes.task_judge import model_units
+from scenes.tasks import task_for_episode
+
+
+def judge_steps(episode: Episode) -> np.ndarray:
+    """(T,) bool: success at each recorded state (the state before step k's ctrl), hold included."""
+    task = task_for_episode(episode.meta.scene, episode.meta.extra)
+    model = episode.build_model()
+    data = mujoco.MjData(model)
+    if isinstance(task, FileTask):
+        units = model_units(model)
+        if units is None:  # recorded before task files: the layout of the robot it was recorded with
+            layout = layout_for(load_robot(episode.meta.robot))
+            units = task.units(layout)
+        judge = task.judge(model, units)
+    else:
+        judge = lambda d: task.success(model, d)  # noqa: E731
+    out = np.zeros(episode.steps, dtype=bool)
+    since: float | None = None
+    for k in range(episode.steps):
+        mujoco.mj_setState(model, data, episode.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(model, data)
+        ok = bool(judge(data))
+        since = (since if since is not None else float(data.time)) if ok else None
+        out[k] = ok and float(data.time) - since >= task.hold - 1e-9  # type: ignore[operator]
+    return out
