@@ -16,8 +16,8 @@ from rich.console import Console
 
 from teleop.cli.json_output import json_stdout, print_json
 
-MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults")
-SLOW = ("e2e",)  # run only when named in --only: a whole train-and-evaluate loop (~30 min on 2 cores)
+MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "tasks")
+SLOW = ("e2e", "tasks")  # run only when named in --only: a train-and-evaluate loop (~30 min on 2 cores); generation on every task (~20 min)
 
 
 def run_all(quick: bool = False, only: list[str] | None = None, progress: bool = True) -> dict[str, float]:

@@ -366,6 +366,17 @@ class FileTask(Task):
         return fn
 
     # -- units and geometry ------------------------------------------------------------------------------
+    def script_for(self, robot: str) -> Path | None:
+        """The script that solves this task with `robot`: `<script>.<robot>.json` beside `script` when there is one.
+
+        Scripts give lengths in metres and cannot scale with the robot's layout, so a
+        smaller arm's sizes get a script of their own.
+        """
+        if self.script is None:
+            return None
+        own = self.script.with_name(f"{self.script.stem}.{robot}{self.script.suffix}")
+        return own if own.exists() else self.script
+
     def units(self, layout: Layout) -> Units:
         scale = layout.size / REFERENCE_SIZE if self.scale == "robot" else float(self.scale)
         return Units(size=layout.size, spread=layout.spread, reach=layout.reach, scale=scale)

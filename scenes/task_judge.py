@@ -181,6 +181,8 @@ class Judge:
                 box = (c - h, c + h)
             else:
                 box = body_box(m, subtree(m, i), i)
+                if not np.any(box[1] - box[0]):  # a visual-only body (a target mark): its drawn geoms are its extent
+                    box = body_box(m, subtree(m, i), i, colliding=False)
             self._cache[key] = box
         return self._cache[key]  # type: ignore[return-value]
 

@@ -79,8 +79,14 @@ class Task:
     extra: dict = field(default_factory=dict)
 
 
+TALL = 0.1  # m: an object this tall starts clear of the workspace centre, where the SO-101's hand rests 10 cm up at Panda size
+CLEAR_Y = 0.075  # m: the least |y| such an object starts at
+
+
 def obj(thing: Thing, name: str | None = None, x=(-0.1, -0.04), y=(0.04, 0.1), **over) -> dict:
     """An object entry placed in a table region (m from the workspace centre)."""
+    if thing.top > TALL:
+        y = (max(y[0], CLEAR_Y), max(y[1], CLEAR_Y + 0.03))
     entry = {"name": name or thing.name, **thing.fields, "region": {"x": list(x), "y": list(y)}}
     if "yaw" in entry:
         entry["region"]["yaw"] = entry.pop("yaw")
@@ -103,13 +109,13 @@ def pick_steps(thing: Thing, name: str, lift: float) -> list[dict]:
     ]
 
 
-def place_steps(thing: Thing, target: Thing, target_name: str, carry: float) -> list[dict]:
-    """Carry the held object over `target` and let it go just above the surface in or on it."""
+def place_steps(thing: Thing, target: Thing, target_name: str, carry: float, release: float = 0.012) -> list[dict]:
+    """Carry the held object over `target` and let it go `release` (m) above the surface in or on it."""
     g = list(thing.grasp)  # the EE stays this far above the held object's bottom
     rest = target.floor - target.base
     return [
         {"duration": 1.5, "to_body": target_name, "offset": add(g, (0, 0, rest + carry))},
-        {"duration": 0.8, "to_body": target_name, "offset": add(g, (0, 0, rest + 0.012))},
+        {"duration": 0.8, "to_body": target_name, "offset": add(g, (0, 0, rest + release))},
         {"duration": 0.6, "gripper": "open"},
         {"duration": 0.8, "move": [0, 0, 0.1]},
     ]
@@ -171,14 +177,15 @@ def cube_on_can() -> Task:
     )
 
 
-def push(thing: Thing) -> Task:
-    """push {object} to the target"""
-    low = 0.015 - thing.base
+def push(thing: Thing, small: bool = False) -> Task:
+    """push {object} to the target; `small`: the SO-101 turns its narrow jaw broadside to the object"""
+    height = 0.015 if thing.top <= 0.05 else 0.03  # m above the table: a tall thing pushed at its foot tips over, high it climbs the hand
+    low = height - thing.base
     steps = [
         {"duration": 0.5, "gripper": "close"},
-        {"duration": 1.5, "to_body": thing.name, "offset": [-0.07, 0, low + 0.08]},
+        {"duration": 1.5, "to_body": thing.name, "offset": [-0.07, 0, low + 0.08], **({"rotate": [0, 0, 1.5708]} if small else {})},
         {"duration": 0.8, "to_body": thing.name, "offset": [-0.07, 0, low]},
-        {"duration": 2.5, "to_body": "target", "offset": [-0.045, 0, 0.015]},
+        {"duration": 2.5, "to_body": "target", "offset": [-0.035, 0, height]},
         {"duration": 0.8, "move": [-0.03, 0, 0.1]},
         {"duration": 0.5},
     ]
@@ -187,7 +194,7 @@ def push(thing: Thing) -> Task:
     return Task(
         f"push_{thing.name}", "push", f"Push the {the(thing.name)} onto the green square.",
         [f"Slide the {the(thing.name)} to the green target.", f"Push the {the(thing.name)} forward onto the green mark."],
-        [obj(thing, x=(-0.1, -0.08), y=(-0.02, 0.02)), target], f"in_region({thing.name}, target) and at_rest({thing.name})",
+        [obj(thing, x=(-0.07, -0.05), y=(-0.02, 0.02)), target], f"in_region({thing.name}, target) and at_rest({thing.name})",
         [{"object": thing.name, "kind": "push"}], steps, robots=thing.fits,
     )
 
@@ -229,7 +236,7 @@ def drawer(kind: str) -> Task:
     ]
     return Task("put_cube_in_drawer", "drawer", "Put the red cube in the open drawer.",
                 ["Place the cube into the drawer.", "Drop the red cube in the drawer."],
-                [dict(DRAWER, joints={"drawer_slide": 0.12}), obj(CUBE, x=(-0.12, -0.06), y=(0.1, 0.15))],
+                [dict(DRAWER, joints={"drawer_slide": 0.12}), obj(CUBE, x=(-0.15, -0.09), y=(0.1, 0.15))],
                 "inside(cube, drawer_inside) and at_rest(cube)",
                 [{"object": "cube", "kind": "grasp"}, {"object": "drawer", "kind": "place"}], steps, robots=BIG_ARMS)
 
@@ -239,8 +246,10 @@ def open_cupboard() -> Task:
         {"duration": 1.5, "to_body": "cupboard_door", "offset": [-0.035, -0.2, 0.17], "gripper": "open"},
         {"duration": 1.0, "to_body": "cupboard_door", "offset": [-0.035, -0.2, 0.105]},
         {"duration": 0.6, "gripper": "close"},
-        {"duration": 1.0, "move": [-0.0665, 0.024, 0]},
-        {"duration": 1.0, "move": [-0.0545, 0.046, 0]},
+        # three chords of the handle's arc (0.2 m about the hinge), the hand turning with the door: 60 degrees
+        {"duration": 1.0, "move": [-0.0665, 0.024, 0], "rotate": [0, 0, -0.349]},
+        {"duration": 1.0, "move": [-0.0545, 0.046, 0], "rotate": [0, 0, -0.349]},
+        {"duration": 1.0, "move": [-0.035, 0.061, 0], "rotate": [0, 0, -0.349]},
         {"duration": 0.6, "gripper": "open"},
         {"duration": 0.8, "move": [0, 0, 0.1]},
         {"duration": 0.5},
@@ -254,8 +263,9 @@ def sort_cubes() -> Task:
     red, blue = cube("red_cube", RED), cube("blue_cube", BLUE)
     bins = [mesh("basket", RED, 0.06 * 0.6, floor=0.006 * 0.6), mesh("basket", BLUE, 0.06 * 0.6, floor=0.006 * 0.6)]
     red_bin, blue_bin = (Thing(n, dict(b.fields, scale=0.6), b.top, floor=b.floor) for n, b in zip(("red_bin", "blue_bin"), bins))
-    steps = (pick_steps(red, "red_cube", 0.09) + place_steps(red, red_bin, "red_bin", 0.06)
-             + pick_steps(blue, "blue_cube", 0.09) + place_steps(blue, blue_bin, "blue_bin", 0.06) + [{"duration": 0.5}])
+    over_rim = red_bin.top - red_bin.floor + 0.008  # let go above the small bins' rims: open fingers would catch a wall
+    steps = (pick_steps(red, "red_cube", 0.09) + place_steps(red, red_bin, "red_bin", 0.06, over_rim)
+             + pick_steps(blue, "blue_cube", 0.09) + place_steps(blue, blue_bin, "blue_bin", 0.06, over_rim) + [{"duration": 0.5}])
     return Task(
         "sort_cubes", "sort", "Put the red cube in the red bin and the blue cube in the blue bin.",
         ["Sort the cubes into the bins by colour.", "Each cube goes into the bin of its colour."],
@@ -303,7 +313,7 @@ def peg(shape: str) -> Task:
                "region": {"x": [0.02, 0.08], "y": [-0.1, -0.05]}}
     return Task(f"peg_in_{shape}_hole", "peg", f"Insert the {shape} peg into the {shape} hole.",
                 [f"Put the {shape} peg in the hole.", f"Fit the yellow peg into the {shape} hole."],
-                [peg_entry, fixture], f"near(peg, {hole}, 0.01) and not lifted(peg, 0.01)",
+                [peg_entry, fixture], f"in_region(peg, {hole}) and upright(peg, 0.3) and not lifted(peg, 0.01)",
                 [{"object": "peg", "kind": "grasp"}, {"object": hole, "kind": "place"}], steps, robots=BIG_ARMS)
 
 
@@ -315,7 +325,7 @@ def library(small: bool = False) -> list[Task]:
              pick_place(BOTTLE, BASKET, "in"), pick_place(MUG, PLATE, "on"), pick_place(CUP, PLATE, "on"),
              pick_place(CAN, PLATE, "on"), pick_place(BOWL, PLATE, "on"), pick_place(CAN, BOWL, "in")]
     tasks += [lift(t) for t in (MUG, CUP, BOWL, BOTTLE, CAN)]
-    tasks += [stack_three(), cube_on_can(), push(CUBE), push(CAN), drawer("open"), drawer("close"), drawer("cube"),
+    tasks += [stack_three(), cube_on_can(), push(CUBE, small), push(CAN), drawer("open"), drawer("close"), drawer("cube"),
               open_cupboard(), sort_cubes(), upright_bottle(), peg("square"), peg("round")]
     return tasks
 
