@@ -16,7 +16,7 @@ from rich.console import Console
 
 from teleop.cli.json_output import json_stdout, print_json
 
-MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "tasks")
+MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "cameras", "tasks")
 SLOW = ("e2e", "tasks")  # run only when named in --only: a train-and-evaluate loop (~30 min on 2 cores); generation on every task (~20 min)
 
 

@@ -7,7 +7,7 @@ the file and what is wrong, so the CLI can print it as is.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +20,7 @@ from recorder.annotations import AnnotationError, read_subtasks
 from recorder.format import CONTROL_POLICY, EpisodeMeta
 from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
+from scenes.extra_camera import CameraSpecError, ExtraCamera, model_with_cameras
 
 EPISODE_SUFFIXES = (".mcap", ".hdf5", ".h5")
 
@@ -63,13 +64,22 @@ class Episode:
         dt = self.meta.timestep * self.substeps
         return self.steps * dt if dt > 0 else float(self.time[-1] - self.time[0]) if self.steps else 0.0
 
-    def build_model(self) -> mujoco.MjModel:
-        """Compile the recorded model XML with its assets, checked against the recorded state size."""
+    def build_model(self, cameras: Sequence[ExtraCamera] = ()) -> mujoco.MjModel:
+        """Compile the recorded model XML with its assets, checked against the recorded state size.
+
+        `cameras`: fixed cameras to add to the recorded model (for rendering; nothing the
+        physics reads changes). A name the recording already has is an EpisodeError.
+        """
         xml = self.meta.model_xml
         if not xml:
             raise EpisodeError(f"{self.path}: no model XML recorded")
         try:
-            model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.assets))
+            if cameras:
+                model = model_with_cameras(xml, self.meta.assets, cameras)
+            else:
+                model = mujoco.MjModel.from_xml_string(xml, dict(self.meta.assets))
+        except CameraSpecError as exc:
+            raise EpisodeError(f"{self.path}: {exc}") from None
         except Exception as exc:  # noqa: BLE001 - mujoco raises ValueError/Exception variants
             first = first_line(exc)
             raise EpisodeError(f"{self.path}: recorded model XML does not compile: {first}") from None

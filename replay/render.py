@@ -75,13 +75,15 @@ def _fit_tessellation(m: mujoco.MjModel, pixels: int) -> None:
     """Fewer facets on round primitives for small images (never more than the model asks for).
 
     MuJoCo draws a capsule with 28 slices x 16 stacks whatever the image size; at 224
-    pixels a robot link spans a few dozen pixels and 14 x 8 gives the same picture but
-    for a few edge pixels, in about half the rendering time on a CPU. Facets grow with
-    the image: 28 slices again from 448 pixels up. Boxes and planes keep their
-    subdivision (`numquads`): lighting is interpolated across it, which shows.
+    pixels a robot link spans up to about a hundred pixels in the cameras framed on
+    the work (scenes.arena), and 19 x 11 gives the same picture but for a few edge
+    pixels, in less rendering time on a CPU (14 x 8 showed facets on the arm as it
+    reached under `overhead`). Facets grow with the image: 28 slices again from 336
+    pixels up; at 144 pixels and less, 12. Boxes and planes keep their subdivision
+    (`numquads`): lighting is interpolated across it, which shows.
     """
     q = m.vis.quality
-    slices = min(int(q.numslices), max(12, round(pixels / 16)))
+    slices = min(int(q.numslices), max(12, round(pixels / 12)))
     stacks = min(int(q.numstacks), max(6, round(q.numstacks * slices / max(1, q.numslices))))
     q.numslices, q.numstacks = slices, stacks
 

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from scenes.camera_view import CameraPose, fit_points
+
 TABLE_TOP = 0.0  # world z of the table surface; robots stand on it
 
 
@@ -33,6 +35,8 @@ def make_arena(layout: Layout, timestep: float, spec: mujoco.MjSpec | None = Non
 
     A single-arm robot's own spec is the base (the arm stays at the origin, its
     names untouched); bimanual arms are attached into a fresh spec under prefixes.
+    The fixed cameras frame the layout's placement spread; `frame_cameras` frames
+    them on a task's own work area once its objects are in.
     """
     spec = spec if spec is not None else mujoco.MjSpec()
     spec.modelname = "teleop_scene"
@@ -94,19 +98,106 @@ def look_at_xyaxes(eye: np.ndarray, target: np.ndarray) -> list[float]:
     return [*right, *up]
 
 
-def _add_cameras(world: mujoco.MjsBody, layout: Layout) -> None:
-    """`front` frames the robot and the workspace; `overhead` looks straight down on the workspace."""
+FRONT_SIDE = 180.0  # deg, azimuth of the side `front` stands on: behind the robot (at the origin, facing +x)
+FRONT_AZIMUTH = -45.0  # deg off that side, to the robot's left: over its shoulder, past the arm, seeing what it faces
+FRONT_ELEVATION = 45.0  # deg above the table of `front`'s line of sight (robosuite's agentview: ~35-45)
+FRONT_FOVY = 25.0  # deg: a narrow lens from farther away keeps far objects nearly as large as near ones
+BIMANUAL_FRONT = -60.0  # deg, azimuth of a bimanual pair's `front`: the front side (-y) between the arms, a little to the right
+OVERHEAD_SIDE = -90.0  # deg, azimuth `overhead` leans in from: the robot's right
+OVERHEAD_TILT = 30.0  # deg from straight down: objects show a side, the arm above the work hides less
+OVERHEAD_FOVY = 20.0  # deg: from higher up the arm over the work looms less
+VIEW_MARGIN = 0.05  # share of the half-image left free around the work area
+MIN_VIEW = 0.35  # reaches: the work area shown is at least this wide, so the gripper's approach stays in the picture
+WORK_HEIGHT = 0.3  # reaches above the table over the work area's middle that `front` keeps in view (the gripper's approach)
+
+
+def layout_work_points(layout: Layout) -> np.ndarray:
+    """The layout's own work area (N x 3, m, world): the spread box grown by a cube, up to two cube sizes high."""
+    cx, cy = layout.center
+    s, r = layout.spread + layout.size * math.sqrt(2), layout.size
+    return np.array([[cx + x, cy + y, TABLE_TOP + z] for x in (-s, s) for y in (-s, s) for z in (0.0, 2 * r)], float)
+
+
+def _widened(points: np.ndarray, layout: Layout) -> np.ndarray:
+    """`points` plus, where the work area is narrower than MIN_VIEW reaches, corners that widen it about its centre."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    want = MIN_VIEW * (layout.reach or 0.85) / 2  # half-width, m
+    hx, hy = max(half[0], want), max(half[1], want)
+    extra = np.array([[mid[0] + sx * hx, mid[1] + sy * hy, TABLE_TOP] for sx in (-1, 1) for sy in (-1, 1)], float)
+    return np.concatenate([points, extra])
+
+
+def _above(points: np.ndarray, layout: Layout) -> np.ndarray:
+    """Points WORK_HEIGHT reaches over the table along the work area's middle line in x (where the gripper comes in)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    z = TABLE_TOP + WORK_HEIGHT * (layout.reach or 0.85)
+    return np.array([[x, (lo[1] + hi[1]) / 2, z] for x in (lo[0], hi[0])], float)
+
+
+def _axes(forward: np.ndarray, up_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(right, up) of a camera looking along `forward` whose image up leans towards `up_hint`."""
+    f = forward / np.linalg.norm(forward)
+    up = up_hint - float(np.dot(up_hint, f)) * f
+    up /= np.linalg.norm(up)
+    return np.cross(f, up), up
+
+
+def framed_cameras(layout: Layout, work: np.ndarray | None = None) -> dict[str, CameraPose]:
+    """`front` and `overhead`, each the closest camera of its direction that keeps `work` (N x 3, m, world) in view.
+
+    front: agentview-like over the robot's shoulder: from behind and to the left of
+    a single arm (FRONT_SIDE + FRONT_AZIMUTH), so the faces of what it works on (a
+    door, a drawer) are seen as the arm sees them, looking down FRONT_ELEVATION
+    degrees; a bimanual pair is seen from the side, between the arms. It also keeps
+    WORK_HEIGHT reaches above the work in view, where the gripper comes in.
+    overhead: from high above, OVERHEAD_TILT off straight down leaning in from the
+    robot's right (a bimanual pair: from the front side), the robot at the bottom.
+    """
+    points = _widened(layout_work_points(layout) if work is None else np.asarray(work, float), layout)
+    az = math.radians(BIMANUAL_FRONT if layout.bimanual else FRONT_SIDE + FRONT_AZIMUTH)  # where `front` stands
+    el = math.radians(FRONT_ELEVATION)
+    front_dir = -np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    right, up = _axes(front_dir, np.array([0.0, 0.0, 1.0]))
+    tilt = math.radians(OVERHEAD_TILT)
+    side = -math.pi / 2 if layout.bimanual else math.radians(OVERHEAD_SIDE)
+    over_dir = -np.array([math.sin(tilt) * math.cos(side), math.sin(tilt) * math.sin(side), math.cos(tilt)])
+    over_up = np.array([0.0, 1.0, 0.0]) if layout.bimanual else np.array([1.0, 0.0, 0.0])
+    o_right, o_up = _axes(over_dir, over_up)
+    return {
+        "front": fit_points(np.concatenate([points, _above(points, layout)]), right, up, FRONT_FOVY, VIEW_MARGIN),
+        "overhead": fit_points(points, o_right, o_up, OVERHEAD_FOVY, VIEW_MARGIN),
+    }
+
+
+def room_camera(layout: Layout) -> CameraPose:
+    """`room`: the wide view of the robot and the whole table, for people watching (the `front` camera of earlier scenes)."""
     cx, cy = layout.center
     dist = max(0.6, 2.2 * layout.spread + 0.45)
     if layout.bimanual:
         target = np.array([cx, cy, TABLE_TOP + 0.1])
-        front_eye = np.array([cx, cy - 1.5 * dist, TABLE_TOP + 0.9 * dist])
+        eye = np.array([cx, cy - 1.5 * dist, TABLE_TOP + 0.9 * dist])
     else:
         target = np.array([0.6 * cx, cy, TABLE_TOP + 0.35 * cx])
-        front_eye = np.array([cx + 1.5 * dist, cy + 0.6 * dist, TABLE_TOP + 0.9 * dist])
-    world.add_camera(name="front", pos=front_eye, xyaxes=look_at_xyaxes(front_eye, target), fovy=50)
-    over_eye = np.array([cx, cy, TABLE_TOP + 1.5 * dist])
-    world.add_camera(name="overhead", pos=over_eye, xyaxes=[0, -1, 0, 1, 0, 0] if not layout.bimanual else [1, 0, 0, 0, 1, 0], fovy=45)
+        eye = np.array([cx + 1.5 * dist, cy + 0.6 * dist, TABLE_TOP + 0.9 * dist])
+    return CameraPose(pos=tuple(map(float, eye)), xyaxes=tuple(look_at_xyaxes(eye, target)), fovy=50.0)
+
+
+def _add_cameras(world: mujoco.MjsBody, layout: Layout) -> None:
+    """`front` and `overhead` framed on the layout's spread, then `room` (the wide view)."""
+    for name, pose in framed_cameras(layout).items():
+        pose.add_to(world, name)
+    room_camera(layout).add_to(world, "room")
+
+
+def frame_cameras(spec: mujoco.MjSpec, layout: Layout, work: np.ndarray | None) -> None:
+    """Point `front` and `overhead` of an arena spec at `work` (N x 3 world points, m; None: the layout's spread)."""
+    for name, pose in framed_cameras(layout, work).items():
+        cam = spec.camera(name)
+        cam.pos = list(pose.pos)
+        cam.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
+        cam.alt.xyaxes = list(pose.xyaxes)
+        cam.fovy = pose.fovy
 
 
 def reference_layout() -> Layout:

@@ -14,8 +14,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from scenes.arena import TABLE_TOP, Layout, make_arena, yaw_quat
+from scenes.arena import TABLE_TOP, Layout, frame_cameras, make_arena, yaw_quat
 from scenes.errors import first_line
+from scenes.framing import work_points
 from scenes.robot import ArmSpec, RobotSpec, SceneError, load_robot
 from scenes.tasks import Task, find_task
 
@@ -262,7 +263,11 @@ def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: in
     assets = {**assets, **task_assets}
 
     try:
-        arena.compile()
+        probe = arena.compile()
+    except Exception as exc:
+        raise SceneError(f"scene '{task.name}' with robot '{robot.name}' does not compile: {first_line(exc)}") from None
+    frame_cameras(arena, layout, work_points(task, layout, probe))  # where this task's objects start and its goals lie
+    try:
         # to_xml keeps 6 digits; the timestep must be exact so that the control
         # period is exactly substeps * timestep.
         xml = re.sub(r'(<option[^>]*?timestep=")[^"]*(")', rf"\g<1>{timestep!r}\g<2>", arena.to_xml(), count=1)

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from scenes.build import build_scene
+from scenes.camera_figure import camera_figures
 from scenes.errors import TeleopError, first_line
 from scenes.robot import BUILTIN_ROBOTS, load_robot
 from scenes.task_base import Task
@@ -18,18 +19,23 @@ def object_names(task: Task) -> list[str]:
 
 
 def describe(task: Task, check: bool = True) -> dict[str, Any]:
-    """One task's row: instruction(s), family, objects, and the robots it fits (built and compiled when `check`)."""
+    """One task's row: instruction(s), family, objects, the robots it fits (built and compiled when `check`)
+    and, when checked, each camera's `object_px_at_96` (scenes.camera_figure; the smallest over the robots)."""
     wanted = list(task.robots) or [r for r in BUILTIN_ROBOTS if task.supports(load_robot(r).bimanual)]
     fits, failed = [], {}
+    figures: dict[str, dict[str, float]] = {}  # camera -> robot -> px
     for robot in wanted:
         if not check:
             fits.append(robot)
             continue
         try:
-            build_scene(task, robot, seed=0)
+            scene = build_scene(task, robot, seed=0)
             fits.append(robot)
         except TeleopError as exc:
             failed[robot] = first_line(exc)
+            continue
+        for camera, px in camera_figures(scene).items():
+            figures.setdefault(camera, {})[robot] = px
     path = getattr(task, "path", None)
     where = "builtin" if path is not None and Path(path).parent == BUILTIN_DIR else (
         "library" if path is not None and Path(path).parent == LIBRARY_DIR else str(path or ""))
@@ -39,6 +45,8 @@ def describe(task: Task, check: bool = True) -> dict[str, Any]:
         "robots": fits, "source": where,
         "arms": "bimanual" if task.needs_bimanual else ("single or bimanual" if task.allows_bimanual else "single"),
     }
+    if check:
+        row["cameras"] = {camera: {"object_px_at_96": min(by.values()), "by_robot": by} for camera, by in figures.items()}
     if failed:
         row["robots_failing"] = failed
     return row

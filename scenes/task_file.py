@@ -329,8 +329,8 @@ class FileTask(Task):
             unknown = sorted(set(entry) - CAMERA_FIELDS)
             if unknown:
                 raise TaskFileError(f"{w}: unknown field '{unknown[0]}' (fields: {', '.join(sorted(CAMERA_FIELDS))})")
-            if not NAME.match(name) or name in ("front", "overhead"):
-                raise TaskFileError(f"{w}: name: must be an identifier other than front and overhead")
+            if not NAME.match(name) or name in ("front", "overhead", "room") or name.endswith("wrist"):
+                raise TaskFileError(f"{w}: name: must be an identifier other than front, overhead, room and the wrist cameras")
             if "pos" not in entry:
                 raise TaskFileError(f"{w}: pos: missing")
             if sum(k in entry for k in ("look_at", "xyaxes", "quat")) != 1:

@@ -77,7 +77,7 @@ def test_fitted_tessellation_changes_only_edge_pixels(episode):
 
 
 def test_unknown_camera_names_the_cameras(episode):
-    with pytest.raises(RenderError, match=r"no camera 'side' .*cameras: front, overhead, wrist"):
+    with pytest.raises(RenderError, match=r"no camera 'side' .*cameras: front, overhead, room, wrist"):
         FastRenderer(episode.build_model(), 32, 32, ["front", "side"])
 
 

@@ -37,6 +37,8 @@ from replay.export.pieces import PIECE_EPISODES, export_in_pieces, is_interrupte
 from replay.export.stream import EpisodeEnd, FrameStream
 from replay.parallel.interrupts import is_cancelled, shielded
 from replay.render import RenderError, warm_up
+from scenes.extra_camera import CameraSpecError, ExtraCamera
+from scenes.extra_camera import parse_cameras as parse_extra_cameras
 
 DEFAULT_CAMERAS = ("front", "wrist")
 
@@ -80,6 +82,9 @@ class ExportOptions:
     piece_episodes: int = PIECE_EPISODES
     resume: bool = False
     force: bool = False  # go on when the free space looks too small for the rest (checked after the first piece)
+    # Cameras added to each recorded model before rendering, as `NAME=pos:x,y,z;look_at:x,y,z[;fovy:deg]` (world frame,
+    # m; scenes.extra_camera). Rendered besides the default cameras, or when `cameras` names them.
+    add_cameras: tuple[str, ...] = ()
 
 
 @dataclass
@@ -368,6 +373,16 @@ def check_options(opts: ExportOptions) -> None:
         raise ExportError(f"cannot append: {opts.out} is not a LeRobot dataset (no meta/info.json)")
     if isinstance(opts.workers, bool) or not isinstance(opts.workers, int) or opts.workers < 1:
         raise ExportError(f"workers {opts.workers!r}: expected a whole number of processes, 1 or more")
+    added_cameras(opts)
+
+
+def added_cameras(opts: ExportOptions) -> list[ExtraCamera]:
+    """The cameras `opts.add_cameras` adds, parsed; ExportError (one line) for a malformed one."""
+    try:
+        specs = opts.add_cameras
+        return parse_extra_cameras([specs] if isinstance(specs, str) else list(specs))
+    except CameraSpecError as exc:
+        raise ExportError(str(exc)) from None
 
 
 def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]) -> tuple[list[_Entry], ExportSummary]:
@@ -390,7 +405,14 @@ def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]
     if cut:
         log(f"note: {len(cut)} episode(s) were cut short when recorded ({_names(cut)}); exporting the steps they have")
     summary.fps = _fps(chosen[0].signature[2])
-    summary.cameras = resolve_cameras(opts.cameras, chosen[0].cameras)
+    added = [c.name for c in added_cameras(opts)]
+    clash = [name for name in added if name in chosen[0].cameras]
+    if clash:
+        raise ExportError(f"camera {clash[0]!r}: the recordings already have a camera of that name (they keep their own "
+                          "cameras; give the added one another name)")
+    summary.cameras = resolve_cameras(opts.cameras, chosen[0].cameras + added)
+    if opts.cameras is None:  # added cameras are rendered besides the default ones
+        summary.cameras += [name for name in added if name not in summary.cameras]
     return chosen, summary
 
 
@@ -447,7 +469,11 @@ def _export_piece(paths: list[Path], opts: ExportOptions, log: Callable[[str], N
     decoder, why = video_decoder()
 
     first = load_episode(chosen[0].path)
-    model = first.build_model()
+    added = added_cameras(opts)
+    try:
+        model = first.build_model(added)
+    except EpisodeError as exc:
+        raise ExportError(str(exc)) from None
     try:
         arms = robot_layout(first.meta, model)
     except (KeyError, ValueError) as exc:
@@ -542,7 +568,8 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
     channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
     loaders = [lambda: first] + [_loader(e.path) for e in chosen[1:]]
     stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first,
-                 intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features)
+                 intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features,
+                 cameras_added=added_cameras(opts))
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
                file=sys.stderr, dynamic_ncols=True)

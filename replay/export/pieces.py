@@ -42,7 +42,8 @@ FORMAT = 1
 PIECE_EPISODES = 20  # episodes per piece: a kill loses at most this many; reopening a dataset costs ~1 s
 # The options a resume must share with the export it continues (the rest only change how it runs).
 SAME_OPTIONS = ("repo_id", "cameras", "image_size", "action", "task", "only_success", "video", "vcodec", "intervention",
-                "object_state")
+                "object_state", "add_cameras")
+OPTION_DEFAULTS = {"add_cameras": []}  # what a journal written before an option existed had, in effect
 
 
 class ResumeError(TeleopError, ValueError):
@@ -200,7 +201,7 @@ def export_in_pieces(
             if manifest["episodes"] != names:
                 raise ResumeError(f"--resume: {out} was exported from other episodes ({len(manifest['episodes'])} "
                                   f"then, {len(names)} now); give the same episode files and options")
-            differ = [k for k, v in _options(opts).items() if manifest["options"].get(k) != v]
+            differ = [k for k, v in _options(opts).items() if manifest["options"].get(k, OPTION_DEFAULTS.get(k)) != v]
             if differ:
                 raise ResumeError(f"--resume: {out} was exported with other options ({', '.join(differ)}); "
                                   "give the same ones")

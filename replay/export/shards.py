@@ -149,7 +149,10 @@ def parts_dir(out: Path) -> Path:
 def _plan_options(opts: ExportOptions) -> dict:
     keys = ("repo_id", "cameras", "image_size", "action", "task", "only_success", "video", "vcodec", "object_state",
             "piece_episodes")
-    return {k: (list(v) if isinstance(v := getattr(opts, k), tuple) else v) for k in keys}
+    plan = {k: (list(v) if isinstance(v := getattr(opts, k), tuple) else v) for k in keys}
+    if opts.add_cameras:  # only then: plans written before the option existed stay resumable
+        plan["add_cameras"] = list(opts.add_cameras)
+    return plan
 
 
 def _parts(opts: ExportOptions, chosen: list, runs: list[range], log: Callable[[str], None]

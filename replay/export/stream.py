@@ -30,6 +30,7 @@ from replay.engine import replay_states
 from replay.episode import Episode
 from replay.export.frames import INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
 from replay.render import FastRenderer
+from scenes.extra_camera import ExtraCamera
 
 QUEUE_BYTES = 64 << 20  # frames waiting for LeRobot, at most (~200 frames of two 224x224 cameras)
 
@@ -51,6 +52,7 @@ class _Job:
     channel_first: list[bool]  # per camera, as the dataset declares it
     intervention: bool = False  # add the per-frame `intervention` feature
     objects: bool = False  # add the environment state (the task objects' poses)
+    cameras_added: tuple[ExtraCamera, ...] = ()  # put into each recorded model before rendering
 
 
 _DONE = object()
@@ -179,9 +181,10 @@ class FrameStream:
         channel_first: Sequence[bool],
         intervention: bool = False,
         objects: bool = False,
+        cameras_added: Sequence[ExtraCamera] = (),
     ) -> None:
-        """Begin producing: each callable loads one episode, in export order."""
-        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects)
+        """Begin producing: each callable loads one episode, in export order; `cameras_added` go into each one's model."""
+        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects, tuple(cameras_added))
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -245,7 +248,7 @@ class FrameStream:
         for i, load in enumerate(job.episodes):
             job.episodes[i] = None  # let each episode's arrays go once replayed
             ep = load()
-            model = ep.build_model()
+            model = ep.build_model(job.cameras_added)
             if renderer is not None and i > 0:
                 renderer.load(model)  # seeds move objects: each episode has its own model
             if worker is not None:

@@ -28,6 +28,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="comma list of cameras to render; 'wrist' means every arm's wrist camera; 'none' for no images "
         "(default: front,wrist where the scene has them)",
     )
+    p.add_argument(
+        "--camera", action="append", default=[], metavar="SPEC",
+        help="add a fixed camera to the recorded model before rendering (repeatable): "
+        "'NAME=pos:x,y,z;look_at:x,y,z[;fovy:deg]', world frame in m (robot base at the origin, table top z=0), "
+        "fovy default 45. Rendered besides the default cameras, or when --cameras names it",
+    )
     p.add_argument("--image-size", default="224x224", metavar="WxH", help="image width x height (default 224x224)")
     p.add_argument(
         "--action", default="joint", choices=("joint", "ee_delta", "ee_pose"),
@@ -104,7 +110,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     quiet_environment()
     from replay.export.dataset import ExportError, ExportOptions, parse_cameras, parse_image_size
     from replay.export import export_dataset
+    from scenes.extra_camera import CameraSpecError, parse_cameras as parse_extra_cameras
 
+    try:
+        parse_extra_cameras(args.camera)  # a malformed --camera answers at once, before any file is read
+    except CameraSpecError as exc:
+        raise UsageError(f"--camera: {exc}") from None
     try:
         opts = ExportOptions(
             out=args.out,
@@ -124,6 +135,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             resume=args.resume,
             piece_episodes=_count(args.piece_episodes, "--piece-episodes", "episodes"),
             force=args.force,
+            add_cameras=tuple(args.camera),
         )
         with cancel_on_interrupt() as cancel:  # Ctrl-C: the episode being saved ends whole, the saved ones stay
             summary = export_dataset(args.paths, opts, cancel=cancel)

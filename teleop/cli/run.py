@@ -46,7 +46,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the speed figures the issues name")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (rougher figures)")
-    p.add_argument("--only", default=None, help="comma list of bench modules to run (control, recording, web, export, devices, generate, eval)")
+    p.add_argument("--only", default=None,
+                   help="comma list of bench modules to run (control, recording, web, export, devices, generate, eval, cameras)")
     p.set_defaults(func=cmd_bench)
 
 
@@ -78,8 +79,9 @@ def cmd_scenes(args: argparse.Namespace) -> int:
         return 0
     width = max(len(r["name"]) for r in rows)
     for r in rows:
+        px = "; ".join(f"{c} {v['object_px_at_96']:g} px" for c, v in r.get("cameras", {}).items() if c in ("front", "overhead"))
         print(f"{r['name']:<{width}}  [{r['family']}] {r['instruction']}  objects: {', '.join(r['objects'])}; "
-              f"robots: {', '.join(r['robots']) or 'none'}")
+              f"robots: {', '.join(r['robots']) or 'none'}" + (f"; smallest object at 96x96: {px}" if px else ""))
     return 0
 
 

@@ -108,8 +108,8 @@ class Panel(LoopThread):
         with gui.add_folder("Loop"):
             self.loop_md = gui.add_markdown(self._loop_text(snap))
         with gui.add_folder("Camera"):
-            self.camera_dropdown = gui.add_dropdown("Camera", options=cameras or ("none",),
-                                                    initial_value=cameras[0] if cameras else "none")
+            first = "room" if "room" in cameras else cameras[0] if cameras else "none"  # the wide view, for people
+            self.camera_dropdown = gui.add_dropdown("Camera", options=cameras or ("none",), initial_value=first)
             w, h = app.camera_size
             self.camera_image = gui.add_image(np.zeros((h, w, 3), dtype=np.uint8), format="jpeg", jpeg_quality=80)
             self.camera_md = gui.add_markdown("")
