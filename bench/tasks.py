@@ -66,10 +66,13 @@ def measure(quick: bool = False) -> dict:
                                        max_attempts=seeds, progress=False)
                 s = generate(sources, opts, log=lambda line: None)
                 rate, per_min = round(s.success_rate, 3), round(s.episodes_per_min, 1)
-            except Exception as exc:  # a task that cannot be generated is a row with 0, not a crashed bench
+                note = ""
+            except Exception as exc:  # a task that cannot be generated is a row with 0 and the reason, not a crashed bench
+                note = str(exc).split(": ", 1)[-1].splitlines()[0]
                 print(f"  {name}: {type(exc).__name__}: {exc}", file=sys.stderr)
                 rate, per_min = 0.0, 0.0
-            rows.append({"task": name, "instruction": find_task(name).text, "success": rate, "episodes_per_min": per_min})
+            rows.append({"task": name, "instruction": find_task(name).text, "success": rate, "episodes_per_min": per_min,
+                         **({"note": note} if note else {})})
             print(f"  {name}: success {rate}, {per_min} episodes/min", file=sys.stderr)
     return {"task_count": len(rows), "tasks_generating": sum(r["success"] >= GOOD for r in rows), "tasks_table": rows}
 
@@ -77,5 +80,6 @@ def measure(quick: bool = False) -> dict:
 def markdown(rows: list[dict]) -> str:
     """The README's table."""
     lines = ["| task | instruction | generation success | episodes/min |", "|---|---|---|---|"]
-    lines += [f"| `{r['task']}` | {r['instruction']} | {r['success']:.2f} | {r['episodes_per_min']:.0f} |" for r in rows]
+    lines += [f"| `{r['task']}` | {r['instruction']} | {r['success']:.2f}{' (' + r['note'] + ')' if r.get('note') else ''} "
+              f"| {r['episodes_per_min']:.0f} |" for r in rows]
     return "\n".join(lines)
