@@ -274,3 +274,24 @@ def test_a_recording_made_before_task_files_replays_bit_exact_and_is_judged_the_
         mujoco.mj_forward(model, data)
         old[k] = _old_success("pick_place", model, data)
     assert old.any() and np.array_equal(new, old)
+
+
+def test_user_task_is_served_and_evaluated_from_its_path(tmp_path, cache, monkeypatch):
+    """`teleop serve --scene PATH.toml` runs the task; `teleop eval`'s loop runs a policy on it to success."""
+    import signal
+
+    from teleop.learn.evaluate import EvalOptions, evaluate
+    from teleop.learn.policy import ScriptedPolicy
+    from tests import browser as headless
+
+    monkeypatch.setenv("TELEOP_CACHE", cache["TELEOP_CACHE"])
+    task = write_task(tmp_path / "t")
+    server = headless.ServeProcess(["--scene", str(task), "--robot", "ur5e", "--device", "gizmo"], tmp_path, env=cache)
+    try:
+        status = server.status()
+        assert status["scene"] == "tin_in_tray" and status["tick"] > 0
+    finally:
+        assert server.stop(signal.SIGINT) == 0, server.log()
+    summary = evaluate(ScriptedPolicy(tmp_path / "t" / "tin_in_tray.json"),
+                       EvalOptions(scene=str(task), robot="panda", episodes=2, seed=0, action="ee_pose", cameras=(), max_seconds=12))
+    assert summary.successes == summary.episodes == 2
