@@ -205,16 +205,22 @@ class Controller:
         quat = arm.target_quat if command.target_quat is None else np.asarray(command.target_quat, dtype=float)
         translation = np.asarray(command.translation, dtype=float)
         rotation = np.asarray(command.rotation, dtype=float)
-        if command.frame == "ee":
-            rot = np.empty(9)
-            mujoco.mju_quat2Mat(rot, quat)
-            translation = rot.reshape(3, 3) @ translation
-            quat = quat_mul(quat, axis_angle_quat(rotation))
-        else:
-            quat = quat_mul(axis_angle_quat(rotation), quat)
-        pos = pos + translation
+        # An absolute target (no translation or rotation: a gizmo, a script, a policy) skips the
+        # composition; adding zeros and multiplying by the identity quaternion change no bit.
+        if translation.dot(translation):  # nonzero, or NaN (truthy): 0.3 us against 1 us for .any()
+            if command.frame == "ee":
+                rot = np.empty(9)
+                mujoco.mju_quat2Mat(rot, quat)
+                translation = rot.reshape(3, 3) @ translation
+            pos = pos + translation
+        if rotation.dot(rotation):
+            if command.frame == "ee":
+                quat = quat_mul(quat, axis_angle_quat(rotation))
+            else:
+                quat = quat_mul(axis_angle_quat(rotation), quat)
         size = norm(quat)
-        if not (np.isfinite(pos).all() and np.isfinite(quat).all() and size > 0):
+        # finite and not absurd: a dot product is NaN or inf when any entry is (0.3 us against 1 us for np.isfinite().all())
+        if not (math.isfinite(pos.dot(pos)) and math.isfinite(size) and size > 0):
             self.stats.ignored_commands += 1
             self.note(f"ignored a non-finite target from {command.source or 'a device'}")
             return

@@ -11,6 +11,8 @@ that same QP without mink's per-call stacking, to within 1e-9 of `mink.solve_ik`
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import mink
 import numpy as np
@@ -119,7 +121,7 @@ class ArmIK:
         target[4:] = pos
         self.frame_task.transform_target_to_world = self.target
         velocity = self._velocity()
-        if velocity is None or not np.isfinite(velocity).all():
+        if velocity is None or not math.isfinite(velocity.dot(velocity)):  # NaN or inf in any entry
             self.configuration.update(self.q)
             self.velocity[:] = 0.0
             return False
@@ -132,11 +134,11 @@ class ArmIK:
         self.configuration.integrate_inplace(velocity, self.dt)
         qpos = self.configuration.data.qpos
         q = np.minimum(np.maximum(qpos, self.q_min), self.q_max)
-        if not np.isfinite(q).all():
+        if not math.isfinite(q.dot(q)):
             self.configuration.update(self.q)
             self.velocity[:] = 0.0
             return False
-        if not (q == qpos).all():  # finite: np.array_equal
+        if q.tolist() != qpos.tolist():  # finite: np.array_equal, in a quarter of the time
             self.configuration.update(q)
             velocity = (q - self.q) / self.dt
         self.velocity = velocity
