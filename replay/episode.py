@@ -355,6 +355,7 @@ def summarize(episode: Episode) -> dict:
         "policy": m.policy,
         "control": _control(episode),
         "subtasks": _subtasks(episode),
+        "variation": m.extra.get("variation"),  # the physics it was generated with (scenes.variation), or None
     }
 
 

@@ -19,6 +19,8 @@ from scenes.errors import first_line
 from scenes.framing import work_points
 from scenes.robot import ArmSpec, RobotSpec, SceneError, load_robot
 from scenes.tasks import Task, find_task
+from scenes.variation import Variation, physics_rng, task_ranges
+from scenes.vary_physics import vary_physics
 
 
 @dataclass
@@ -34,6 +36,7 @@ class Scene:
     model: mujoco.MjModel
     layout: Layout
     cameras: tuple[str, ...] = field(default=())
+    variation: dict = field(default_factory=dict)  # the physics drawn for this seed (empty: none); episodes record it
 
     def make_data(self) -> mujoco.MjData:
         """Fresh MjData at the seeded layout with every arm at home."""
@@ -234,8 +237,12 @@ def _user_reach(spec: mujoco.MjSpec, arm: ArmSpec) -> float:
     return 0.85 * best
 
 
-def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: int = 0, timestep: float = 0.002) -> Scene:
-    """Compile `task` (a name, a task file PATH.toml or a Task) with `robot`, objects placed from `seed` (same seed, same scene)."""
+def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: int = 0, timestep: float = 0.002,
+                variation: Variation | None = None) -> Scene:
+    """Compile `task` (a name, a task file PATH.toml or a Task) with `robot`, objects placed from `seed` (same seed, same scene).
+
+    variation: physics kinds to draw for `seed` (scenes.vary_physics) into the model; looks are not drawn here.
+    """
     if isinstance(robot, (str, Path)):
         robot = load_robot(robot)
     task = find_task(task)
@@ -259,7 +266,9 @@ def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: in
         arms = tuple(final_arms)
     else:
         arena = make_arena(layout, timestep, robot_spec)
+    before = {b.name for b in arena.worldbody.bodies}  # the robots' roots; the task adds its own
     task_assets = task.build(arena, layout, np.random.default_rng(seed)) or {}
+    drawn = _vary(arena, task, before, seed, variation) if variation is not None and variation.physics else {}
     assets = {**assets, **task_assets}
 
     try:
@@ -276,5 +285,19 @@ def build_scene(task: str | Path | Task, robot: str | Path | RobotSpec, seed: in
         first = first_line(exc)
         raise SceneError(f"scene '{task.name}' with robot '{robot.name}' does not compile: {first}") from None
     cameras = tuple(model.camera(i).name for i in range(model.ncam))
-    return Scene(task=task, robot=robot, arms=arms, seed=seed, xml=xml, assets=assets,
+    return Scene(task=task, robot=robot, arms=arms, seed=seed, xml=xml, assets=assets, variation=drawn,
                  model=model, layout=layout, cameras=cameras)
+
+
+def _vary(arena: mujoco.MjSpec, task: Task, robot_roots: set[str], seed: int, variation: Variation) -> dict:
+    """Draw and apply the physics of `variation` for `seed`; what an episode records of it."""
+    roots = [b.name for b in arena.worldbody.bodies if b.name not in robot_roots]
+    ranges = variation.ranges(task_ranges(task))
+    try:
+        params = vary_physics(arena, roots, sorted(robot_roots), variation.physics, ranges, physics_rng(seed, variation.split))
+    except ValueError as exc:  # mujoco's compile errors, multi-line
+        raise SceneError(f"scene '{task.name}' does not compile with its physics varied: {first_line(exc)}") from None
+    return {"kinds": list(variation.physics), "split": variation.split, "seed": int(seed),
+            "ranges": {k: v for k, v in ranges.to_json().items() if k in ("size", "mass", "friction", "damping", "distractors",
+                                                                          "distractor_size")},
+            "params": params}

@@ -35,6 +35,7 @@ from scenes.robot import BUILTIN_ROBOTS, SceneError
 from scenes.task_base import SUBTASK_KINDS, SubtaskSpec, Task
 from scenes.task_expr import ExpressionError, Node, parse, predicates
 from scenes.task_judge import UNITS_NUMERIC, Judge, JudgeError, Units, model_units
+from scenes.variation import Ranges, VariationError, parse_ranges
 
 BIMANUAL_ROBOTS = ("bimanual",)
 REFERENCE_SIZE = 0.02  # m: the task-cube half-size that `scale = "robot"` lengths are written for
@@ -43,7 +44,7 @@ NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 TASK_NAME = re.compile(r"^[a-z0-9_]+$")
 SHAPES = ("box", "cylinder", "sphere", "capsule", "bin", "mesh", "mjcf")
 TOP_FIELDS = {"name", "instruction", "instructions", "family", "summary", "robots", "scale", "gap", "success", "hold", "script",
-              "subtasks", "object", "region", "camera"}
+              "subtasks", "object", "region", "camera", "variation"}
 OBJECT_FIELDS = {"name", *SHAPES, "scale", "wall", "rgba", "mass", "density", "friction", "fixed", "collide", "region", "on", "euler",
                  "z", "min_distance", "joints"}
 REGION_FIELDS = {"name", "x", "y", "rgba"}
@@ -187,6 +188,7 @@ class FileTask(Task):
         self.regions = self._regions(raw.get("region", []))
         self.objects = self._objects(raw.get("object", []))
         self.cameras = self._cameras(raw.get("camera", []))
+        self.variation = self._variation(raw.get("variation"))
         self.aliases: dict[str, str] = {}
         self.python_judge: Callable[[mujoco.MjModel, mujoco.MjData], bool] | None = None
         self.expr: Node | None = None
@@ -343,6 +345,16 @@ class FileTask(Task):
                 _numbers(entry["fovy"], 1, f"{w}: fovy")
             out.append(entry)
         return out
+
+    def _variation(self, table: Any) -> Ranges | None:
+        """The `[variation]` table's ranges over the defaults (scenes.variation), or None when the file has none."""
+        if table is None:
+            return None
+        try:
+            return parse_ranges(table, f"{self.where}: [variation]",
+                                texture_file=lambda rel, w: self._file(rel, w, (".png",)))
+        except VariationError as exc:
+            raise TaskFileError(str(exc)) from None
 
     def _python_judge(self, success: str) -> Callable:
         parts = success.split(":")

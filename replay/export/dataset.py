@@ -32,12 +32,15 @@ from replay.export.frames import (
     robot_layout,
 )
 from replay.export.lerobot_io import ExportError, dir_size, load_lerobot
+from replay.export.looks import COLUMN, Unit, dataset_has_column, record_column, units_of, variant
+from replay.export.looks import check as check_looks
 from replay.export.stats import image_stats
 from replay.export.pieces import PIECE_EPISODES, export_in_pieces, is_interrupted
 from replay.export.stream import EpisodeEnd, FrameStream
 from replay.parallel.interrupts import is_cancelled, shielded
 from replay.render import RenderError, warm_up
 from scenes.extra_camera import CameraSpecError, ExtraCamera
+from scenes.variation import VARIATION_KEY, Variation
 from scenes.extra_camera import parse_cameras as parse_extra_cameras
 
 DEFAULT_CAMERAS = ("front", "wrist")
@@ -85,6 +88,23 @@ class ExportOptions:
     # Cameras added to each recorded model before rendering, as `NAME=pos:x,y,z;look_at:x,y,z[;fovy:deg]` (world frame,
     # m; scenes.extra_camera). Rendered besides the default cameras, or when `cameras` names them.
     add_cameras: tuple[str, ...] = ()
+    # Looks (replay/export/looks.py): every episode rendered `looks` times, variant j with the look seed
+    # variation.looks_seed + j; `variation.kinds` the looks that vary (none asked with looks > 1: lights, colors,
+    # textures, cameras). One look and nothing to vary: the recorded look, today's export.
+    looks: int = 1
+    variation: Variation | None = None
+    # The `variation` episode column (what each episode's look and physics were). None: written when looks vary,
+    # an episode was generated with physics varied, or the dataset appended to has it.
+    variation_meta: bool | None = None
+    # A parallel export's shard: (index among the chosen episodes, look index or None) of the variants it exports.
+    variant_plan: tuple[tuple[int, int | None], ...] | None = None
+
+    @property
+    def variation_key(self) -> dict | None:
+        """What a resume must share of the looks (None: as recorded), for the export's journal."""
+        if self.looks == 1 and self.variation is None:
+            return None
+        return {"looks": self.looks, **(self.variation.to_json() if self.variation is not None else {})}
 
 
 @dataclass
@@ -102,6 +122,7 @@ class ExportSummary:
     resumed_from: int = 0  # episodes an interrupted export had already written (--resume)
     interrupted: bool = False
     backend: str = ""
+    looks: int = 1  # LeRobot episodes written per recorded one (each its own look)
 
     @property
     def frames_per_s(self) -> float:
@@ -116,6 +137,8 @@ class ExportSummary:
             f"({self.frames_per_s:.0f} frames/s) to {self.out} ({mb:.1f} MB, "
             f"{self.dataset_episodes} episode{'s' * (self.dataset_episodes != 1)} in all)"
         )
+        if self.looks > 1:
+            text += f"; {self.looks} looks of each recorded episode"
         if self.resumed_from:
             text += f"; resumed after the {self.resumed_from} episode{'s' * (self.resumed_from != 1)} already exported"
         skipped = []
@@ -159,6 +182,7 @@ class _Entry:
     steps: int
     cameras: list[str]
     records_control: bool = False  # its steps say who drove (a policy or a person)
+    varied: bool = False  # generated with physics varied (its metadata says how)
 
 
 def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
@@ -185,6 +209,7 @@ def _scan(paths: Iterable[str | Path]) -> list[_Entry]:
                 steps=ep.steps,
                 cameras=list(m.cameras),
                 records_control=m.records_control,
+                varied=VARIATION_KEY in m.extra,
             )
         )
     return entries
@@ -374,6 +399,7 @@ def check_options(opts: ExportOptions) -> None:
     if isinstance(opts.workers, bool) or not isinstance(opts.workers, int) or opts.workers < 1:
         raise ExportError(f"workers {opts.workers!r}: expected a whole number of processes, 1 or more")
     added_cameras(opts)
+    check_looks(opts.looks, opts.variation)
 
 
 def added_cameras(opts: ExportOptions) -> list[ExtraCamera]:
@@ -405,6 +431,7 @@ def select_episodes(paths: list, opts: ExportOptions, log: Callable[[str], None]
     if cut:
         log(f"note: {len(cut)} episode(s) were cut short when recorded ({_names(cut)}); exporting the steps they have")
     summary.fps = _fps(chosen[0].signature[2])
+    summary.looks = opts.looks
     added = [c.name for c in added_cameras(opts)]
     clash = [name for name in added if name in chosen[0].cameras]
     if clash:
@@ -430,13 +457,15 @@ def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callabl
     check_options(opts)
     warm_up()  # the GL backend probe runs while episodes are scanned and LeRobot loads
     chosen, summary = select_episodes(paths, opts, log)
+    opts = replace(opts, variation_meta=wants_variation_meta(opts, chosen))  # one answer for every piece
+    units = export_units(chosen, opts)
     t0 = time.perf_counter()
     logs = [log]  # the first piece's notes (the video decoder) are the export's; the same again are not
 
-    frames_left = [sum(e.steps for e in chosen)]  # not yet exported by this run
+    frames_left = [sum(u.steps for u in units)]  # not yet exported by this run
     per_frame: list[float] = []  # dataset bytes per frame, measured on the first piece this run writes
 
-    def piece(paths: list[Path], piece_opts: ExportOptions) -> ExportSummary:
+    def piece(paths: list[Unit], piece_opts: ExportOptions) -> ExportSummary:
         if per_frame and not opts.force:  # before the next piece: the rest must clearly fit (issue 25)
             check_free_space(opts.out, per_frame[0] * frames_left[0], f"{frames_left[0]} more frames of "
                              f"~{per_frame[0] / 1000:.1f} KB")
@@ -447,7 +476,7 @@ def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callabl
             per_frame.append(max(0, (dir_size(opts.out) if opts.out.exists() else 0) - size0) / done.frames)
         return done
 
-    parts, summary.resumed_from = export_in_pieces([e.path for e in chosen], opts, piece, log, opts.piece_episodes)
+    parts, summary.resumed_from = export_in_pieces(units, opts, piece, log, opts.piece_episodes, names=[u.name for u in units])
     for part in parts:
         summary.episodes += part.episodes
         summary.frames += part.frames
@@ -459,9 +488,27 @@ def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callabl
     return summary
 
 
-def _export_piece(paths: list[Path], opts: ExportOptions, log: Callable[[str], None],
+def export_units(chosen: list[_Entry], opts: ExportOptions) -> list[Unit]:
+    """The LeRobot episodes to write, in order: each chosen episode once per look (a shard: its plan's)."""
+    if opts.variant_plan is not None:
+        return [Unit(chosen[i].path, chosen[i].steps, look) for i, look in opts.variant_plan]
+    return units_of(chosen, opts.looks, opts.variation)
+
+
+def wants_variation_meta(opts: ExportOptions, chosen: list[_Entry]) -> bool:
+    """Whether the export writes the `variation` episode column: as resolved, else when looks vary, an episode was
+    generated with physics varied, or the dataset appended to has it."""
+    if opts.variation_meta is not None:
+        return opts.variation_meta
+    if opts.looks > 1 or opts.variation is not None or any(e.varied for e in chosen):
+        return True
+    return bool(opts.append and opts.out.exists() and dataset_has_column(opts.out))
+
+
+def _export_piece(units: list[Unit], opts: ExportOptions, log: Callable[[str], None],
                   cancel: threading.Event | None) -> ExportSummary:
-    """One finalized piece: the episodes `paths` into a new dataset, or appended to opts.out's."""
+    """One finalized piece: the variants `units` into a new dataset, or appended to opts.out's."""
+    paths = list(dict.fromkeys(u.path for u in units))
     chosen, summary = select_episodes(paths, replace(opts, only_success=False), lambda line: None)
     robot_type = chosen[0].signature[0]
     fps, cameras = summary.fps, summary.cameras
@@ -490,6 +537,11 @@ def _export_piece(paths: list[Path], opts: ExportOptions, log: Callable[[str], N
     # A streamed episode never waits on the encoder: its queue holds a whole episode.
     queue = max(e.steps for e in chosen) + 2
     t0 = time.perf_counter()
+    column = wants_variation_meta(opts, chosen)
+    if column and opts.append and opts.out.exists() and not dataset_has_column(opts.out):
+        stream.close()
+        raise ExportError(f"cannot append: {opts.out} has no per-episode {COLUMN} metadata, and these episodes vary "
+                          "(their looks or physics); export them to a new dataset")
     try:
         ds, created = _open_dataset(LeRobotDataset, opts, spec, fps, robot_type, queue, decoder)
     except BaseException:
@@ -499,7 +551,7 @@ def _export_piece(paths: list[Path], opts: ExportOptions, log: Callable[[str], N
         log(f"video: {decoder} decoder ({why})")  # slower reads in training, nothing wrong
     try:
         with image_stats():  # LeRobot's per-frame image statistics, from value counts (replay/export/stats.py)
-            _write(ds, chosen, first, opts, cameras, stream, summary, cancel)
+            _write(ds, units, first, opts, cameras, stream, summary, cancel, column)
     except KeyboardInterrupt:
         summary.interrupted = True
     finally:
@@ -555,10 +607,27 @@ def _loader(path: Path) -> Callable[[], Episode]:
     return load
 
 
-def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, cameras, stream: FrameStream,
-           summary: ExportSummary, cancel: threading.Event | None) -> None:
+def _loaders(units: list[Unit], first: Episode) -> list[Callable[[], Episode]]:
+    """One loader per variant; the variants of one episode share its one load."""
+    last = {"path": units[0].path, "episode": first}
+
+    def loader(path: Path) -> Callable[[], Episode]:
+        def load() -> Episode:
+            if last["path"] != path:
+                last["episode"], last["path"] = None, path
+                last["episode"] = _loader(path)()
+            return last["episode"]
+
+        return load
+
+    return [loader(u.path) for u in units]
+
+
+def _write(ds, chosen: list[Unit], first: Episode, opts: ExportOptions, cameras, stream: FrameStream,
+           summary: ExportSummary, cancel: threading.Event | None, column: bool = False) -> None:
     """LeRobot's side: add the stream's frames, save each episode as its last frame arrives.
 
+    `chosen`: the variants, in order; `column`: write each one's `variation` episode metadata.
     Cancelled (the token, or a KeyboardInterrupt), it ends with KeyboardInterrupt between
     frames; the episode in progress is dropped.
     """
@@ -566,10 +635,14 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
 
     keys = [feature_key(c) for c in cameras]
     channel_first = [is_channel_first(ds.meta.features[k]) for k in keys]  # as the dataset declares them
-    loaders = [lambda: first] + [_loader(e.path) for e in chosen[1:]]
-    stream.start(loaders, opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys, channel_first,
-                 intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features,
-                 cameras_added=added_cameras(opts))
+    added = tuple(added_cameras(opts))
+    prepare = None
+    if column or any(u.look is not None for u in chosen):
+        prepare = [(lambda ep, model, look=u.look: variant(ep, model, look, opts.looks, opts.variation, added)) for u in chosen]
+    next_variation = record_column(ds) if column else None
+    stream.start(_loaders(chosen, first), opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys,
+                 channel_first, intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features,
+                 cameras_added=added, prepare=prepare)
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
                file=sys.stderr, dynamic_ncols=True)
@@ -581,6 +654,8 @@ def _write(ds, chosen: list[_Entry], first: Episode, opts: ExportOptions, camera
                 ds.add_frame(item)
                 bar.update(1)
                 continue
+            if next_variation is not None:
+                next_variation(item.variation or {})
             # LeRobot's save_episode writes data, video and metadata in turn; cut in between, the
             # dataset would hold frames its metadata does not know of: a Ctrl-C waits for it.
             _, interrupted = shielded(ds.save_episode)

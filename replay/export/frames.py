@@ -29,6 +29,7 @@ import mujoco
 import numpy as np
 
 from recorder.format import CONTROL_POLICY, ArmMeta, EpisodeMeta
+from scenes.variation import DISTRACTOR_PREFIX
 
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -80,9 +81,10 @@ class ObjectLayout:
 def object_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> ObjectLayout:
     """The bodies whose pose is the environment state: every body with a joint of its own whose
     root (the world's child it hangs from) holds none of the arms' joints (so no robot link, finger or
-    base). Works on any recording's embedded model, old ones included."""
+    base); distractors (scenes.variation) left out. Works on any recording's embedded model, old ones included."""
     robot_roots = {int(model.body_rootid[model.jnt_bodyid[model.joint(j).id]]) for arm in meta.arms for j in arm.joints}
-    ids = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots]
+    ids = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots
+           and not model.body(b).name.startswith(DISTRACTOR_PREFIX)]  # their number varies: no task's state
     names = [model.body(b).name or f"body{b}" for b in ids]
     base = min(robot_roots) if robot_roots else 0
     return ObjectLayout(names=names, body_ids=np.asarray(ids, dtype=int), base_id=base)

@@ -42,8 +42,8 @@ FORMAT = 1
 PIECE_EPISODES = 20  # episodes per piece: a kill loses at most this many; reopening a dataset costs ~1 s
 # The options a resume must share with the export it continues (the rest only change how it runs).
 SAME_OPTIONS = ("repo_id", "cameras", "image_size", "action", "task", "only_success", "video", "vcodec", "intervention",
-                "object_state", "add_cameras")
-OPTION_DEFAULTS = {"add_cameras": []}  # what a journal written before an option existed had, in effect
+                "object_state", "add_cameras", "variation_key")
+OPTION_DEFAULTS = {"add_cameras": [], "variation_key": None}  # what a journal written before an option existed had, in effect
 
 
 class ResumeError(TeleopError, ValueError):
@@ -179,14 +179,16 @@ def export_in_pieces(
     export_piece: Callable[[list[Path], Any], Any],
     log: Callable[[str], None],
     piece_episodes: int = PIECE_EPISODES,
+    names: Sequence[str] | None = None,
 ) -> tuple[list[Any], int]:
     """Export `episodes` (already chosen, in export order) piece by piece with `export_piece(paths, opts)`.
 
     opts: the export's options (an ExportOptions: `out`, `append`, `resume`, `on_episode` are read).
+    names: what the journal calls each episode (default: its resolved path).
     Returns (the pieces' summaries, episodes that an earlier run had already exported).
     """
     out = Path(opts.out)
-    names = [str(Path(p).resolve()) for p in episodes]
+    names = list(names) if names is not None else [str(Path(p).resolve()) for p in episodes]
     done = 0
     manifest = _read_manifest(out)
     if manifest is not None and not getattr(opts, "resume", False):
@@ -198,13 +200,13 @@ def export_in_pieces(
                 raise ResumeError(f"--resume: {out} holds no interrupted export (no journal {journal_dir(out).name}); "
                                   "it is complete, or was not made by teleop export")
         else:
+            differ = [k for k, v in _options(opts).items() if manifest["options"].get(k, OPTION_DEFAULTS.get(k)) != v]
+            if differ:  # first: other looks also name other episodes, and the option is what to fix
+                raise ResumeError(f"--resume: {out} was exported with other options ({', '.join(differ)}); "
+                                  "give the same ones")
             if manifest["episodes"] != names:
                 raise ResumeError(f"--resume: {out} was exported from other episodes ({len(manifest['episodes'])} "
                                   f"then, {len(names)} now); give the same episode files and options")
-            differ = [k for k, v in _options(opts).items() if manifest["options"].get(k, OPTION_DEFAULTS.get(k)) != v]
-            if differ:
-                raise ResumeError(f"--resume: {out} was exported with other options ({', '.join(differ)}); "
-                                  "give the same ones")
             removed = _roll_back(out, manifest)
             done = int(manifest["done"])
             log(f"resuming {out}: {done} of {len(names)} episodes were exported; "

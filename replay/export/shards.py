@@ -37,9 +37,11 @@ from replay.export.dataset import (
     ExportOptions,
     ExportSummary,
     export_serial,
+    export_units,
     select_episodes,
     video_decoder,
     wants_intervention,
+    wants_variation_meta,
 )
 from replay.export.lerobot_io import LEROBOT_HINT, ExportError, dir_size, load_lerobot
 from replay.export.pieces import is_interrupted
@@ -55,6 +57,7 @@ class _Shard:
     files: list[Path]
     frames: int
     out: Path  # the shard's dataset, under the temporary parts directory
+    plan: tuple[tuple[int, int | None], ...] = ()  # its variants: (index in `files`, look index or None)
 
 
 def shard_count(episodes: int, parallel: int) -> int:
@@ -152,6 +155,8 @@ def _plan_options(opts: ExportOptions) -> dict:
     plan = {k: (list(v) if isinstance(v := getattr(opts, k), tuple) else v) for k in keys}
     if opts.add_cameras:  # only then: plans written before the option existed stay resumable
         plan["add_cameras"] = list(opts.add_cameras)
+    if opts.variation_key is not None:  # likewise
+        plan["variation"] = opts.variation_key
     return plan
 
 
@@ -217,14 +222,15 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     _check_installed("lerobot", LEROBOT_HINT)  # the full import (seconds) overlaps the workers' start
     runner = _runner(opts, opts.workers, cancel) if opts.ray is not None else None  # connects: a bad address fails now
     parallel = runner.workers if runner is not None else opts.workers
-    runs = split([e.steps for e in chosen], shard_count(len(chosen), parallel))
+    units = export_units(chosen, opts)  # each episode once per look: variants are sharded like episodes
+    runs = split([u.steps for u in units], shard_count(len(units), parallel))
     # The shards' own settings: what the driver resolved, no progress or callbacks of their own.
     shard_opts = replace(opts, cameras=summary.cameras, only_success=False, progress=False, on_episode=None,
-                         workers=1, ray=None, append=False, resume=False, intervention=wants_intervention(opts, chosen))
+                         workers=1, ray=None, append=False, resume=False, intervention=wants_intervention(opts, chosen),
+                         variation_meta=wants_variation_meta(opts, chosen))
     opts.out.parent.mkdir(parents=True, exist_ok=True)
     parts, runs, finished = _parts(opts, chosen, runs, log)
-    shards = [_Shard(i, [chosen[k].path for k in run], sum(chosen[k].steps for k in run), parts / f"shard_{i:03d}")
-              for i, run in enumerate(runs)]
+    shards = [_shard(i, [units[k] for k in run], parts / f"shard_{i:03d}") for i, run in enumerate(runs)]
     bar = _bar(opts, sum(s.frames for s in shards), len(shards), parallel)
     progress = None
     try:
@@ -257,6 +263,13 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     return summary
 
 
+def _shard(index: int, units: list, out: Path) -> _Shard:
+    """A shard of consecutive variants: the episode files they need, once each, and which variant of which file."""
+    files = list(dict.fromkeys(u.path for u in units))
+    plan = tuple((files.index(u.path), u.look) for u in units)
+    return _Shard(index, files, sum(u.steps for u in units), out, plan)
+
+
 def _check_installed(module: str, hint: str) -> None:
     """A one-line ExportError naming the extra to install, found without importing the module (seconds)."""
     try:
@@ -283,7 +296,7 @@ def _prefix(shards: list[_Shard], results: list[ExportSummary | None]) -> list[t
             break
         if result.episodes + result.resumed_from and shard.out.exists():
             keep.append((shard.index, result))
-        if result.interrupted or result.episodes + result.resumed_from < len(shard.files):
+        if result.interrupted or result.episodes + result.resumed_from < len(shard.plan):
             break
     return keep
 
@@ -348,11 +361,12 @@ def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progres
         for s in todo:
             if ray:
                 shutil.rmtree(s.out, ignore_errors=True)  # a Ray shard comes back whole or not at all
-                yield _ray_shard, [(f.name, f.read_bytes()) for f in s.files], opts
+                yield _ray_shard, [(f.name, f.read_bytes()) for f in s.files], replace(opts, variant_plan=s.plan)
             else:
                 if s.out.exists() and not is_interrupted(s.out):
                     shutil.rmtree(s.out)  # whole, but killed before it was marked done: exported again
-                yield _export_shard, s.files, replace(opts, out=s.out, resume=is_interrupted(s.out)), s.index, runner.cancel_arg
+                yield (_export_shard, s.files, replace(opts, out=s.out, resume=is_interrupted(s.out), variant_plan=s.plan), s.index,
+                       runner.cancel_arg)
 
     def take(position: int, result) -> None:
         index = todo[position].index

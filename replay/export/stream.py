@@ -41,6 +41,7 @@ class EpisodeEnd:
 
     index: int  # position in the episodes given to `start`
     steps: int
+    variation: dict | None = None  # what its `prepare` said of it (replay/export/looks.py), if any
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,8 @@ class _Job:
     intervention: bool = False  # add the per-frame `intervention` feature
     objects: bool = False  # add the environment state (the task objects' poses)
     cameras_added: tuple[ExtraCamera, ...] = ()  # put into each recorded model before rendering
+    # per episode: (episode, recorded model) -> (the model to render it with, what to record of it); None: as recorded
+    prepare: list[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None
 
 
 _DONE = object()
@@ -182,9 +185,12 @@ class FrameStream:
         intervention: bool = False,
         objects: bool = False,
         cameras_added: Sequence[ExtraCamera] = (),
+        prepare: Sequence[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None,
     ) -> None:
-        """Begin producing: each callable loads one episode, in export order; `cameras_added` go into each one's model."""
-        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects, tuple(cameras_added))
+        """Begin producing: each callable loads one episode, in export order; `cameras_added` go into each one's model;
+        `prepare[i]` turns episode i's recorded model into the one it is rendered with (another look)."""
+        self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects, tuple(cameras_added),
+                         None if prepare is None else list(prepare))
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -249,8 +255,11 @@ class FrameStream:
             job.episodes[i] = None  # let each episode's arrays go once replayed
             ep = load()
             model = ep.build_model(job.cameras_added)
-            if renderer is not None and i > 0:
-                renderer.load(model)  # seeds move objects: each episode has its own model
+            variation = None
+            if job.prepare is not None:
+                model, variation = job.prepare[i](ep, model)
+            if renderer is not None and (i > 0 or job.prepare is not None):
+                renderer.load(model)  # seeds move objects (and looks change them): each episode has its own model
             if worker is not None:
                 worker.episode(ep, model, job.channel_first[own:])
             build = FrameBuilder(robot_layout(ep.meta, model), job.action,
@@ -270,6 +279,6 @@ class FrameStream:
                 frame["task"] = task
                 if not self._put(frame):
                     return
-            if not self._put(EpisodeEnd(i, ep.steps)):
+            if not self._put(EpisodeEnd(i, ep.steps, variation)):
                 return
         self._put(_DONE)

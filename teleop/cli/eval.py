@@ -10,6 +10,7 @@ from pathlib import Path
 
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
+from teleop.cli.variation_args import EVAL_WORDS, add_looks_seed_arg, add_range_args, variation_from
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +24,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "Cameras and image size come from the policy; the action mode and control rate from its training "
         "dataset where train_config.json names one that is here.",
     )
-    p.add_argument("--policy", required=True, type=Path, metavar="PATH", help="LeRobot pretrained_model folder")
+    p.add_argument("--policy", required=True, type=Path, metavar="PATH",
+                   help="LeRobot pretrained_model folder, or script:FILE.json (a scenes/scripts JSON played as EE poses)")
     p.add_argument("--scene", default="lift", help="task scene (default lift)")
     p.add_argument("--robot", default="panda", help="built-in robot name or PATH.toml (default panda)")
     p.add_argument("--episodes", default="50", metavar="N", help="episodes, one scene seed each (default 50)")
@@ -37,6 +39,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--action", default=None, choices=("joint", "ee_delta", "ee_pose"),
                    help="action mode (default: the training dataset's, else joint)")
     p.add_argument("--control-hz", default=None, metavar="HZ", help="control rate (default: the training dataset's fps, else 30)")
+    p.add_argument("--vary", default=None, metavar="WORDS",
+                   help=f"vary each episode's scene: comma list of {EVAL_WORDS}")
+    add_range_args(p, textures=True)
+    add_looks_seed_arg(p, "look seed S: episodes are rendered with the held-out look seed 1000000000 + S, apart from every "
+                       "training export's (default 0)")
+    p.add_argument("--variation-split", default="held_out", choices=("held_out", "train"),
+                   help="held_out (default): looks and physics from seeds no export or generation uses; train: from theirs")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_eval)
 
@@ -69,12 +78,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     seed = _whole("--seed", args.seed, 0)
     max_seconds = _positive("--max-seconds", args.max_seconds)
     control_hz = _positive("--control-hz", args.control_hz)
+    variation = variation_from(args, "eval", split=args.variation_split)  # a bad word or range: one line, at once
+    if str(args.policy).startswith("script:"):
+        return _eval_script(args, episodes, seed, max_seconds, control_hz, variation)
     from teleop.cli.export import quiet_environment
 
     quiet_environment()  # before LeRobot loads: nothing from the Hub
-    from teleop.learn.evaluate import EvalOptions, evaluate, make_eval_env
+    from teleop.learn.evaluate import EvalOptions, make_eval_env
     from teleop.learn.policy import Checkpoint, LeRobotPolicy
-    from recorder import RecorderError
 
     checkpoint = Checkpoint(args.policy)  # a missing or wrong folder: one line before torch loads
     implied = checkpoint.env_options()
@@ -91,10 +102,35 @@ def cmd_eval(args: argparse.Namespace) -> int:
         record=args.record,
         formats=("mcap", "hdf5") if args.format == "both" else (args.format,),
         progress=sys.stderr.isatty(),
+        variation=variation,
     )
     with contextlib.closing(make_eval_env(opts)) as env:
         checkpoint.check(env)  # mismatched features: one line before torch loads
     policy = LeRobotPolicy.load(checkpoint, device=args.device)
+    return _report(args, policy, opts)
+
+
+def _eval_script(args: argparse.Namespace, episodes: int, seed: int, max_seconds: float | None, control_hz: float | None,
+                 variation) -> int:
+    """`--policy script:FILE`: the script as EE-pose actions, looking at no camera (it reads where bodies are)."""
+    from teleop.learn.evaluate import EvalOptions
+    from teleop.learn.policy import ScriptedPolicy
+
+    script = Path(str(args.policy)[len("script:"):])
+    if not script.is_file():
+        raise UsageError(f"--policy {args.policy}: no such script file")
+    opts = EvalOptions(scene=args.scene, robot=args.robot, episodes=episodes, seed=seed, max_seconds=max_seconds,
+                       control_hz=control_hz or 30.0, action=args.action or "ee_pose", cameras=(), record=args.record,
+                       formats=("mcap", "hdf5") if args.format == "both" else (args.format,), progress=sys.stderr.isatty(),
+                       variation=variation)
+    return _report(args, ScriptedPolicy(script), opts)
+
+
+def _report(args: argparse.Namespace, policy, opts) -> int:
+    """Run the evaluation and print its report (one JSON object with --json)."""
+    from teleop.learn.evaluate import evaluate
+    from recorder import RecorderError
+
     try:
         summary = evaluate(policy, opts)
     except RecorderError as exc:  # a full disk under --record: one line (main prints it), exit 2

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from teleop.errors import UsageError
 from teleop.cli.signals import cancel_on_interrupt
+from teleop.cli.variation_args import LOOKS_WORDS, add_looks_seed_arg, add_range_args, variation_from
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +23,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("paths", nargs="+", type=Path, metavar="PATHS", help="episode files or directories of them")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset directory (must not exist unless --append)")
-    p.add_argument("--repo-id", required=True, metavar="NAME", help="dataset name, e.g. me/panda_lift")
+    p.add_argument("--repo-id", default=None, metavar="NAME", help="dataset name, e.g. me/panda_lift (required unless --preview)")
     p.add_argument(
         "--cameras", default=None, metavar="LIST",
         help="comma list of cameras to render; 'wrist' means every arm's wrist camera; 'none' for no images "
@@ -79,6 +80,19 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "HOST:PORT or ray://HOST:PORT; --workers K then sets the tasks at once (default: the cluster's CPUs). "
         "Needs .[cluster]; the nodes need this package installed, not the episode files",
     )
+    p.add_argument(
+        "--looks", default="1", metavar="K",
+        help="render each episode K times, each with its own seeded look (lights, colours, textures, camera jitter), as K "
+        "LeRobot episodes with the same actions and states (default 1: the recorded look). The looks that vary: --vary",
+    )
+    p.add_argument("--vary", default=None, metavar="WORDS",
+                   help=f"the looks to vary, comma list of {LOOKS_WORDS} (default with --looks > 1: looks)")
+    add_range_args(p, textures=True)
+    add_looks_seed_arg(p, "look seed of the first look (variant j uses S + j; training seeds, apart from teleop eval's "
+                       "held-out ones; default 0)")
+    p.add_argument("--preview", default=None, metavar="N",
+                   help="write no dataset: a contact sheet (PNG at --out FILE.png) of N looks of the first episode's first "
+                   "frame, a row per camera")
     p.set_defaults(func=cmd_export)
 
 
@@ -116,10 +130,14 @@ def cmd_export(args: argparse.Namespace) -> int:
         parse_extra_cameras(args.camera)  # a malformed --camera answers at once, before any file is read
     except CameraSpecError as exc:
         raise UsageError(f"--camera: {exc}") from None
+    variation = variation_from(args, "export")  # a bad word, range or texture file: one line, at once
+    preview = _count(args.preview, "--preview", "looks") if args.preview is not None else None
+    if preview is None and not args.repo_id:
+        raise UsageError("--repo-id is required (a dataset name, e.g. me/panda_lift)")
     try:
         opts = ExportOptions(
             out=args.out,
-            repo_id=args.repo_id,
+            repo_id=args.repo_id or "preview/looks",
             cameras=parse_cameras(args.cameras),
             image_size=parse_image_size(args.image_size),
             action=args.action,
@@ -136,7 +154,16 @@ def cmd_export(args: argparse.Namespace) -> int:
             piece_episodes=_count(args.piece_episodes, "--piece-episodes", "episodes"),
             force=args.force,
             add_cameras=tuple(args.camera),
+            looks=_count(args.looks, "--looks", "looks"),
+            variation=variation,
         )
+        if preview is not None:
+            from replay.export.preview import contact_sheet
+
+            sheet = contact_sheet(args.paths, opts, preview)
+            print(f"wrote {preview} looks of {Path(sheet['episode']).name}'s first frame ({', '.join(sheet['cameras'])}) "
+                  f"to {sheet['out']} ({sheet['size'][0]}x{sheet['size'][1]})")
+            return 0
         with cancel_on_interrupt() as cancel:  # Ctrl-C: the episode being saved ends whole, the saved ones stay
             summary = export_dataset(args.paths, opts, cancel=cancel)
     except ExportError as exc:

@@ -9,6 +9,7 @@ from pathlib import Path
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
 from teleop.cli.signals import cancel_on_interrupt
+from teleop.cli.variation_args import add_physics_args, variation_from
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -45,6 +46,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="start a new run in an --out that holds other episodes (another run's, other sources or "
                    "options) instead of refusing; without it, a re-run with the same sources and options resumes")
     g.add_argument("--force", action="store_true", help="go on even when the free space looks too small for --num episodes")
+    add_physics_args(g)
     g.add_argument("--json", action="store_true", help="print one JSON object")
     g.set_defaults(func=cmd_generate)
 
@@ -94,6 +96,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         progress=sys.stderr.isatty(),
         force_new=args.force_new,
         force=args.force,
+        variation=variation_from(args, "generation"),
     )
     try:
         with cancel_on_interrupt() as cancel:  # Ctrl-C: the workers stop, what was kept stays

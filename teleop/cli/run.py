@@ -21,6 +21,7 @@ from scenes.catalog import catalog
 from scenes.errors import TeleopError
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
+from teleop.cli.variation_args import add_physics_args, variation_from
 from teleop.cli.signals import interrupts_ignored
 from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
@@ -62,6 +63,7 @@ def add_session_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-verify", action="store_true", help="skip the exact-replay check after each saved episode")
     p.add_argument("--pos-speed", type=float, default=0.15, help="hold-to-move speed, m/s (default 0.15)")
     p.add_argument("--rot-speed", type=float, default=0.8, help="hold-to-rotate speed, rad/s (default 0.8)")
+    add_physics_args(p)
 
 
 def cmd_robots(args: argparse.Namespace) -> int:
@@ -89,7 +91,8 @@ def make_session(args: argparse.Namespace, verify: str = "sync", on_error: str =
     """A Session from the shared flags, with a Recorder attached when --record is given."""
     if args.record is not None and args.record.exists() and not args.record.is_dir():
         raise UsageError(f"--record {args.record}: exists and is not a directory")
-    session = Session(scene=args.scene, robot=args.robot, seed=args.seed, control_hz=args.control_hz)
+    variation = variation_from(args, "generation")  # a bad --vary word or range: one line, before the scene builds
+    session = Session(scene=args.scene, robot=args.robot, seed=args.seed, control_hz=args.control_hz, variation=variation)
     if args.record is not None:
         formats = ("mcap", "hdf5") if args.format == "both" else (args.format,)
         Recorder(session, args.record, formats, verify="off" if args.no_verify else verify, on_error=on_error)

@@ -36,6 +36,7 @@ from recorder.format import ArmMeta, EpisodeMeta
 from replay import VerifyResult, verify_file
 from scenes.errors import first_line
 from scenes.tasks import episode_extra
+from scenes.variation import VARIATION_KEY
 from teleop.control.controller import Controller
 from teleop.control.record_row import RowFiller
 from teleop.control.session import Session
@@ -170,7 +171,7 @@ class Recorder:
             source=self.episode_source,
             devices=self.devices,
             records_control=self.control is not None,
-            extra=episode_extra(scene.task, session.seed),
+            extra={**episode_extra(scene.task, session.seed), **({VARIATION_KEY: scene.variation} if scene.variation else {})},
         ).replace(**self.provenance)
 
     def start(self) -> None:

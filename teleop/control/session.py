@@ -23,6 +23,7 @@ import numpy as np
 from devices.command import Command
 from scenes import RobotSpec, Scene, build_scene, load_robot
 from scenes.tasks import Task, find_task
+from scenes.variation import Variation
 from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, TickObserver, physics_split
 from teleop.errors import SessionError
 
@@ -49,7 +50,8 @@ class Session:
 
     scene: a task name (`teleop scenes`), a task file PATH.toml or a Task; robot: a built-in name, a PATH.toml or
     a RobotSpec; seed: object placement (same seed, same scene); control_hz:
-    control ticks per second (physics runs in equal steps of at most 2 ms).
+    control ticks per second (physics runs in equal steps of at most 2 ms); variation: physics
+    drawn for each seed into its model (scenes.vary_physics), recorded with every episode.
     """
 
     def __init__(
@@ -58,6 +60,7 @@ class Session:
         robot: str | Path | RobotSpec = "panda",
         seed: int = 0,
         control_hz: float = 30.0,
+        variation: Variation | None = None,
     ) -> None:
         if not (math.isfinite(control_hz) and 0 < control_hz <= 1000):
             raise SessionError(f"control rate must be between 0 and 1000 Hz, got {control_hz}")
@@ -69,6 +72,7 @@ class Session:
         self.substeps, self.timestep = physics_split(self.control_hz)
         self.stats = ControlStats()
         self.recorder: AttachedRecorder | None = None
+        self.variation = variation
         self.load(seed)
 
     # --- scene lifecycle -----------------------------------------------------
@@ -76,7 +80,7 @@ class Session:
     def load(self, seed: int) -> None:
         """Build the scene for `seed` (a new model: object placement is part of it)."""
         self.seed = int(seed)
-        self.scene: Scene = build_scene(self.task, self.robot, self.seed, timestep=self.timestep)
+        self.scene: Scene = build_scene(self.task, self.robot, self.seed, timestep=self.timestep, variation=self.variation)
         self.robot = self.scene.robot  # a user's robot gets its reach measured here
         try:
             self.controller = Controller(self.scene, self.control_hz, self.stats)

@@ -37,6 +37,7 @@ from replay.parallel import Runner, connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
 from scenes.errors import TeleopError, first_line
 from scenes.tasks import TASK_FILE_KEY, task_for_episode
+from scenes.variation import Variation
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
 from teleop.generate.resume import Done, Journal, run_identity
 from teleop.control.loop import run_episode
@@ -72,11 +73,12 @@ class Job:
     keep_failures: bool
     settle_s: float = SETTLE_S
     task_file: Mapping[str, Any] | None = None  # the sources' embedded task file (scenes.tasks.TASK_FILE_KEY), if any
+    variation: Variation | None = None  # physics drawn per seed into each episode's model (scenes.vary_physics)
 
     def session(self, seed: int) -> Session:
         """The scene for `seed`: from the task file the sources embed when they do, else by name."""
         task = task_for_episode(self.scene, {TASK_FILE_KEY: self.task_file} if self.task_file else None)
-        return Session(scene=task, robot=self.robot, seed=seed, control_hz=self.control_hz)
+        return Session(scene=task, robot=self.robot, seed=seed, control_hz=self.control_hz, variation=self.variation)
 
     @property
     def max_steps(self) -> int:
@@ -238,6 +240,7 @@ class GenerateOptions:
     progress: bool = True
     force_new: bool = False  # start a new run in an --out that holds another run's (or other) episodes
     force: bool = False  # go on when the free space looks too small for the episodes asked
+    variation: Variation | None = None  # `--vary physics`: each seed's physics drawn into its scene, recorded
 
 
 def generate(sources: Iterable[str | Path], opts: GenerateOptions,
@@ -267,11 +270,15 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
         connect_ray(opts.ray)
     stub, sources = load_sources(sources, log)
     job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures,
-              task_file=stub.task_file)
+              task_file=stub.task_file, variation=opts.variation)
+    if opts.variation is not None and opts.variation.physics:
+        job.session(opts.seed)  # a range the task cannot take answers now, in one line, not in every worker
     max_attempts = opts.max_attempts or 10 * opts.num + 10
     try:
-        journal = Journal(opts.out, run_identity(sources, opts.seed, opts.formats, opts.keep_failures,
-                                                 GENERATOR_VERSION), force_new=opts.force_new, log=log)
+        identity = run_identity(sources, opts.seed, opts.formats, opts.keep_failures, GENERATOR_VERSION)
+        if opts.variation is not None and opts.variation.physics:  # only then: journals from before stay resumable
+            identity["variation"] = {k: v for k, v in opts.variation.to_json().items() if k in ("kinds", "overrides", "split")}
+        journal = Journal(opts.out, identity, force_new=opts.force_new, log=log)
     except WriteError as exc:
         exc.summary = GenerateSummary()  # type: ignore[attr-defined]
         raise

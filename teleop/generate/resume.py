@@ -30,7 +30,7 @@ from scenes.errors import TeleopError
 
 JOURNAL = ".generate.jsonl"
 FORMAT = 1
-SAME = ("generator_version", "sources", "subtasks", "seed", "formats", "keep_failures")  # a resume must share these
+SAME = ("generator_version", "sources", "subtasks", "seed", "formats", "keep_failures", "variation")  # a resume must share these
 
 
 class ResumeRefused(TeleopError, ValueError):
@@ -181,7 +181,7 @@ class Journal:
 
 def _words(keys: list[str]) -> list[str]:
     names = {"generator_version": "generator version", "sources": "sources", "subtasks": "source subtasks",
-             "seed": "--seed", "formats": "--format", "keep_failures": "--keep-failures"}
+             "seed": "--seed", "formats": "--format", "keep_failures": "--keep-failures", "variation": "--vary"}
     return [names.get(k, k) for k in keys] or ["options"]
 
 

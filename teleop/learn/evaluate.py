@@ -36,6 +36,7 @@ from replay.annotate import FAILURE_REASONS, progress_of
 from replay.export.frames import feature_key
 from scenes import RobotSpec
 from scenes.errors import TeleopError, first_line
+from scenes.variation import HELD_OUT_BASE, Variation, eval_look_seed, looks_kinds, physics_kinds
 from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
 from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
 from teleop.control.recording import Recorder, arm_metas
@@ -80,6 +81,8 @@ class EvalOptions:
     verify: str = "sync"  # the recorder's check of each saved rollout ("off" to skip)
     progress: bool = False  # a progress bar on stderr
     on_episode: Callable[["EpisodeOutcome"], None] | None = None
+    # Physics and looks varied per episode (scenes.variation), from held-out seeds unless variation.split is "train".
+    variation: Variation | None = None
 
 
 @dataclass
@@ -94,6 +97,7 @@ class EpisodeOutcome:
     replay_bit_exact: bool | None = None  # the recorder's check of it (None: not recorded or not checked)
     reached: list[str] = field(default_factory=list)  # subtasks completed in order, e.g. ["grasp cube"]
     failure: str | None = None  # why it failed (a replay.annotate.FAILURE_REASONS key); None: success
+    variation: dict | None = None  # its scene's physics and its cameras' look (None: not varied)
 
 
 @dataclass
@@ -113,6 +117,7 @@ class EvalSummary:
     record: str | None = None
     interrupted: bool = False
     error: str = ""  # the recording's write error that stopped it ('<file>: <cause>'), "" when none
+    variation: dict | None = None  # which variation and which seeds (report_variation)
 
     @property
     def episodes(self) -> int:
@@ -172,6 +177,7 @@ class EvalSummary:
             "record": self.record,
             "interrupted": self.interrupted,
             "error": self.error,
+            "variation": self.variation,
         }
 
     def lines(self) -> list[str]:
@@ -196,7 +202,24 @@ class EvalSummary:
         if self.failure_breakdown:
             out.append("failures: " + ", ".join(f"{k} {v}" for k, v in self.failure_breakdown.items()))
         out.append(f"{self.steps} steps at {self.steps_per_s:.1f} steps/s in {self.wall_seconds:.1f} s")
+        if self.variation is not None:
+            v = self.variation
+            out.append(f"varied: {', '.join(v['kinds'])} ({v['split']} seeds; look seed {v['look_seed']})")
         return out
+
+
+def report_variation(variation: Variation | None) -> dict | None:
+    """What the report says of the variation: the kinds, and which seeds (held out from training, or training ones)."""
+    if variation is None or not variation.kinds:
+        return None
+    return {
+        "kinds": list(variation.kinds), "physics": list(physics_kinds(variation.kinds)),
+        "looks": list(looks_kinds(variation.kinds, "eval")), "split": variation.split, "looks_seed": variation.looks_seed,
+        "look_seed": eval_look_seed(variation.looks_seed, variation.split),
+        "training_look_seeds": [0, HELD_OUT_BASE - 1], "held_out_look_seeds": [HELD_OUT_BASE, 2 * HELD_OUT_BASE - 1],
+        "physics_stream": variation.split, "overrides": dict(variation.overrides),
+        "texture_files": [name for name, _ in variation.texture_files],
+    }
 
 
 def scene_cameras(env: TeleopEnv) -> list[str]:
@@ -219,7 +242,8 @@ def camera_names(wanted: Sequence[str], have: Sequence[str]) -> list[str]:
 
 def make_eval_env(opts: EvalOptions) -> TeleopEnv:
     """The environment the options describe (policy image keys resolved to the scene's cameras)."""
-    common = dict(control_hz=opts.control_hz, action=opts.action, max_seconds=opts.max_seconds, seed=opts.seed)
+    common = dict(control_hz=opts.control_hz, action=opts.action, max_seconds=opts.max_seconds, seed=opts.seed,
+                  variation=opts.variation)
     if opts.image_size is not None:
         common["image_size"] = opts.image_size
     cameras = None if opts.cameras is None else list(opts.cameras)
@@ -276,7 +300,8 @@ def run_rollout(env: TeleopEnv, policy: Policy, seed: int, recorder: Recorder | 
     progress = _progress_of(env, states, gripper, success)
     outcome = EpisodeOutcome(seed=seed, success=success, steps=steps, seconds=round(seconds, 6),
                              seconds_to_success=round(seconds, 6) if success else None,
-                             wall_seconds=round(wall, 6), reached=list(progress.reached), failure=progress.reason)
+                             wall_seconds=round(wall, 6), reached=list(progress.reached), failure=progress.reason,
+                             variation=env.unwrapped.variation_json())
     if recorder is not None:
         files = recorder.save(complete=True)
         if files:
@@ -307,6 +332,7 @@ def evaluate(policy: Policy, opts: EvalOptions) -> EvalSummary:
             policy=policy.name, scene=session.scene_name, robot=session.robot.name, action=env.action_mode,
             control_hz=session.control_hz, cameras=list(env.cameras), image_size=env.image_size if env.cameras else None,
             max_seconds=opts.max_seconds, record=None if opts.record is None else str(opts.record),
+            variation=report_variation(opts.variation),
         )
         recorder = None
         if opts.record is not None:

@@ -38,6 +38,8 @@ from replay.export.dataset import DEFAULT_CAMERAS, ExportError, resolve_cameras,
 from replay.export.frames import ACTION_MODES, ENV_STATE, ArmLayout, FrameBuilder, ObjectLayout, feature_key, object_layout, robot_layout
 from replay.render import FastRenderer
 from scenes import RobotSpec
+from scenes.variation import Variation, eval_look_seed, looks_kinds, task_ranges
+from scenes.vary_looks import apply_looks, sample_looks
 from teleop.errors import EnvError
 from teleop.learn.gym_spaces import make_spaces
 from teleop.control.recording import arm_metas
@@ -82,6 +84,9 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
     and wxyz quaternion in the robot's base frame), as the export writes it by default.
     seed: the scene seed of the first reset without one; reset(seed=s) builds
     the scene for seed s, a reset without a seed the next seed.
+    variation: physics drawn into each seed's scene, and looks (scenes.vary_looks) its cameras are
+    rendered with, from the look seed `eval_look_seed(looks_seed, split)` and the scene seed
+    (`variation_json()` says what each episode got).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -100,12 +105,15 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         render_mode: str | None = None,
         session: Session | None = None,
         object_state: bool = True,
+        variation: Variation | None = None,
     ) -> None:
         _check_options(action, max_seconds, seed, render_mode)
+        self.variation = variation
+        self.look: dict | None = None  # the look the cameras are rendered with (None: the scene's own)
         self.image_size = _image_size(image_size)
         # session: observe and drive this live Session (a served one a policy drives) instead of
         # building one; scene, robot, control_hz and seed are then the session's.
-        self.session = session if session is not None else Session(scene, robot, int(seed), control_hz)
+        self.session = session if session is not None else Session(scene, robot, int(seed), control_hz, variation=variation)
         self.action_mode = action
         self.object_state = bool(object_state)
         self.render_mode = render_mode
@@ -154,8 +162,19 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         self._frames = FrameBuilder(self.arms, self.action_mode, self.objects)  # new per episode: quaternion signs start afresh
         self._scratch = mujoco.MjData(self.model)
         self._state = np.empty(controller.nstate)
+        self._render_model, self._render_data = self.model, self._scratch
+        kinds = looks_kinds(self.variation.kinds, "eval") if self.variation is not None else ()
+        self.look = None
+        if kinds:  # another look: a model of its own to render, the same state restored into it
+            variation, scene = self.variation, controller.scene
+            ranges = variation.ranges(task_ranges(scene.task))
+            joints = [j for arm in meta.arms for j in arm.joints]
+            self.look = sample_looks(self.model, joints, ranges, kinds, eval_look_seed(variation.looks_seed, variation.split),
+                                     self.session.seed)
+            self._render_model = apply_looks(scene.xml, scene.assets, self.look, ranges.texture_data)
+            self._render_data = mujoco.MjData(self._render_model)
         if self._renderer is not None:
-            self._renderer.load(self.model)
+            self._renderer.load(self._render_model)
 
     def _render_cameras(self) -> list[str]:
         extra = [self.render_camera] if self.render_mode and self.render_camera not in self.cameras else []
@@ -164,7 +183,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
     def _renderer_for_images(self) -> FastRenderer | None:
         """The export's renderer, made on first use (a GL context costs ~0.1 s; no cameras, none)."""
         if self._renderer is None and self._render_cameras():
-            self._renderer = FastRenderer(self.model, *self.image_size, self._render_cameras())
+            self._renderer = FastRenderer(self._render_model, *self.image_size, self._render_cameras())
         return self._renderer
 
     def get_state(self) -> np.ndarray:
@@ -205,10 +224,20 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         if ENV_STATE in frame:
             obs[ENV_STATE] = frame[ENV_STATE]
         renderer = self._renderer_for_images()
+        if self.cameras and self._render_data is not self._scratch:
+            mujoco.mj_setState(self._render_model, self._render_data, self._state, INTEGRATION)
+            mujoco.mj_forward(self._render_model, self._render_data)
         for c, cam in enumerate(self.cameras):
-            obs[feature_key(cam)] = renderer.render(self._scratch, c)
+            obs[feature_key(cam)] = renderer.render(self._render_data, c)
         self._last_obs = obs
         return obs
+
+    def variation_json(self) -> dict[str, Any] | None:
+        """What this episode's scene varies: its physics (drawn into the model) and the look of its cameras; None: nothing."""
+        physics = self.session.scene.variation or None
+        if physics is None and self.look is None:
+            return None
+        return {"physics": physics, "looks": self.look}
 
     def _info(self, success: bool) -> dict[str, Any]:
         return {"is_success": success, "seed": self.session.seed, "time": self.session.time}
@@ -249,7 +278,10 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
             self._observe()
         if self.render_camera in self.cameras:
             return self._last_obs[feature_key(self.render_camera)].copy()
-        return self._renderer_for_images().render(self._scratch, len(self.cameras))
+        if self._render_data is not self._scratch:
+            mujoco.mj_setState(self._render_model, self._render_data, self._state, INTEGRATION)
+            mujoco.mj_forward(self._render_model, self._render_data)
+        return self._renderer_for_images().render(self._render_data, len(self.cameras))
 
     def close(self) -> None:
         """Free the renderer's GL context (safe to call twice)."""
