@@ -373,3 +373,20 @@ def test_the_readme_table_holds_the_defaults_and_every_session_command_takes_the
     for command in (["serve"], ["run", "--device", "keyboard"], ["generate", "x", "--out", "y", "--num", "1"]):
         args = parser.parse_args([*command, "--vary", "physics", "--vary-range", "mass=0.5,2"])
         assert args.vary == "physics" and args.vary_range == ["mass=0.5,2"]
+
+
+def test_serve_takes_the_flag_and_draws_the_physics_of_its_seed(tmp_path):
+    """`teleop serve --vary physics`: the served scene is the varied one, as `run` draws it for the same seed."""
+    import signal
+
+    from tests import browser as headless
+
+    server = headless.ServeProcess(["--seed", "4", "--vary", "mass,friction", "--device", "gizmo"], tmp_path)
+    try:
+        served = server.status()["variation"]
+    finally:
+        assert server.stop(signal.SIGINT) == 0, server.log()
+    assert served["kinds"] == ["mass", "friction"] and served["seed"] == 4
+    out = run_json("run", "--device", f"script:{PICK}", "--record", str(tmp_path / "rec"), "--control-hz", HZ, "--seed", "4",
+                   "--vary", "mass,friction", "--json")
+    assert load_episode(out["files"][0]).meta.extra["variation"]["params"] == served["params"]

@@ -276,6 +276,7 @@ class WebApp:
             "scene": session.scene_name,
             "robot": session.robot.name,
             "seed": snap.seed,
+            "variation": session.scene.variation or None,  # the physics drawn for this seed (--vary), else null
             "control_hz": session.control_hz,
             "tick": snap.tick,
             "sim_time": round(snap.sim_time, 6),
