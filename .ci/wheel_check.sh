@@ -29,6 +29,10 @@ case "$site" in "$work/venv/"*) ;; *) fail "scenes was imported from $site, not 
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 scenes=$("$teleop" scenes) || fail "teleop scenes exited with $?"
 grep -q '^lift' <<< "$scenes" || fail "teleop scenes does not list lift: $scenes"
+[ "$(wc -l <<< "$scenes")" -ge 30 ] || fail "teleop scenes lists fewer than 30 tasks (the library's files are missing?)"
+"$teleop" run --device "script:$site/scripts/put_mug_in_basket.json" --scene put_mug_in_basket --json > "$work/mug.json" \
+    || fail "teleop run of a library task (a mesh object) exited with $?"
+grep -q '"success": true' "$work/mug.json" || fail "the library task's script did not succeed: $(cat "$work/mug.json")"
 say "teleop scenes: ok"
 "$teleop" run --device "script:$site/scripts/lift_pick.json" --scene lift --record "$work/eps" --json > "$work/run.json" \
     || fail "teleop run (scripted, recording) exited with $?"
