@@ -63,19 +63,23 @@ class PairFilter:
             others = a[b == box]
             center = model.geom_aabb[box, :3].copy()
             reach = model.geom_aabb[box, 3:][None, :] + (rbound[others] + margin)[:, None]  # m, (pairs, 3)
-            self.groups.append((int(box), others, center if np.any(center) else None, reach))
+            rot = data.geom_xmat[box].reshape(3, 3)  # a view: b's orientation as the data holds it now
+            self.groups.append((int(box), others, center if np.any(center) else None, reach, rot))
 
     def any_near(self) -> bool:
         """True if some pair may be closer than the detection distance (geom poses as now in the data)."""
         if self.always:
             return True
-        xpos, xmat = self.xpos, self.xmat
-        for box, others, center, reach in self.groups:
-            local = (xpos[others] - xpos[box]) @ xmat[box].reshape(3, 3)  # rows: a's centres in b's frame
+        xpos = self.xpos
+        for box, others, center, reach, rot in self.groups:
+            local = xpos[others]  # a copy
+            local -= xpos[box]
+            local = local @ rot  # rows: a's centres in b's frame
             if center is not None:
                 local -= center
             np.abs(local, out=local)
-            if (local <= reach).all(axis=1).any():
+            local -= reach  # <= 0 on every axis: within reach (a - b <= 0 exactly when a <= b)
+            if local.max(axis=1).min() <= 0.0:
                 return True
         return False
 
