@@ -68,7 +68,7 @@ def plot(results: list[dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--steps", type=int, default=12000)
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "learning_curve")
     args = parser.parse_args(argv)
     results = [run(demos, sources, args.steps, args.work) for demos, sources in RUNS]

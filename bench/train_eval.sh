@@ -18,7 +18,7 @@ usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--
 task=${1:?$usage}
 shift
 demos=200
-steps=3000
+steps=12000
 sources=3
 humanlike=0
 images=0
@@ -83,13 +83,17 @@ if [ ! -f train_seconds ]; then
     say "training ACT for $steps steps on $device"
     rm -rf train
     t0=$(date +%s)
-    # ACT on the robot state and the objects' poses: a small transformer (2 encoder layers, width 256),
-    # chunks of 20 actions (0.67 s at 30 Hz) of which 10 are executed before the next inference.
+    # ACT on the robot state and the objects' poses, sized for 2 CPU cores: one encoder layer of width 128
+    # (4 heads), no VAE (the scripted and generated demos are one mode per scene), chunks of 20 actions
+    # (0.67 s at 30 Hz) of which 10 run before the next inference; a data-loading worker beside the training.
+    # One torch thread: a model this small gains nothing from intra-op threads, and two of them fight the
+    # data worker for the 2 cores (measured: 8 steps/s on one thread, under 1 step/s oversubscribed).
+    OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} \
     "$train" --dataset.repo_id="local/$task" --dataset.root="$work/ds" --policy.type=act --policy.device="$device" \
         --policy.push_to_hub=false --policy.pretrained_backbone_weights=null \
-        --policy.dim_model=256 --policy.n_heads=4 --policy.dim_feedforward=1024 --policy.n_encoder_layers=2 \
-        --policy.n_vae_encoder_layers=2 --policy.chunk_size=20 --policy.n_action_steps=10 --policy.optimizer_lr=1e-4 \
-        --batch_size="${BATCH:-64}" --steps="$steps" --num_workers=0 --wandb.enable=false --save_freq="$steps" \
+        --policy.dim_model=128 --policy.n_heads=4 --policy.dim_feedforward=512 --policy.n_encoder_layers=1 \
+        --policy.use_vae=false --policy.chunk_size=20 --policy.n_action_steps=10 --policy.optimizer_lr=1e-4 \
+        --batch_size="${BATCH:-64}" --steps="$steps" --num_workers="${WORKERS:-1}" --wandb.enable=false --save_freq="$steps" \
         --log_freq=500 --output_dir="$work/train" 2>&1 | tr '\r' '\n' | sed -u -E 's/^Training:.*\](INFO )/\1/' \
         | grep --line-buffered -v "^Training:" >&2 || true
     [ -d "$work/train/checkpoints/last/pretrained_model" ] || { echo "train_eval.sh: lerobot-train made no checkpoint" >&2; exit 1; }
