@@ -26,6 +26,7 @@ from teleop.learn.gym_env import TeleopEnv
 from teleop.control.loop import run_episode
 from teleop.learn.policy import PolicyMismatch, ScriptedPolicy
 from teleop.learn.takeover import Takeover, moves_arm
+from teleop.web.app import STATUS_PERIOD_S
 from teleop.web.panel import PanelDevice
 from tests.browser import free_port
 from tests.conftest import ROOT, assert_one_line_error, run_cli
@@ -199,9 +200,17 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
             headless.drag_gizmo_axis(page, before, server.status()["target_quat"][0], axis=0, pixels=80)
             taken = server.wait_for(lambda s: s["driver"] == "operator", what="the drag to take over")
             assert taken["policy"]["takeovers"] == 1 and taken["policy"]["handovers"][-1]["reason"] == "gizmo moved"
-            moved = server.wait_for(lambda s: s["target_pos"][0][0] > before[0] + 0.03, what="the dragged target")
+            server.wait_for(lambda s: s["target_pos"][0][0] > before[0] + 0.03, what="the dragged target")
             page.get_by_text("Driving: operator").first.wait_for(timeout=10000)
             time.sleep(0.5)  # some operator steps
+            # Where the operator left it: the drag's last pointer moves may land after the first status past +3 cm.
+            moved = server.status()
+            for _ in range(40):  # until two statuses a status period apart agree
+                time.sleep(2 * STATUS_PERIOD_S)
+                now = server.status()
+                if now["target_pos"] == moved["target_pos"]:
+                    break
+                moved = now
             operator_z = moved["target_pos"][0][2]
 
             headless.click_button(page, "Hand back to policy")
