@@ -19,20 +19,23 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SCRIPTS = {"lift": "lift_pick.json", "pick_place": "pick_place.json", "stack": "stack_pick.json"}
+TASKS = ("lift", "pick_place", "stack")
 SEEDS = 100  # new seeds per task (the issue's figure)
 QUICK_SEEDS = 20
 FIRST_NEW_SEED = 1000
 
 
 def record_sources(task: str, directory: Path, seeds=(0, 1, 2)) -> list[Path]:
-    """3 scripted demos of `task` through the public API, as a user would record them."""
+    """3 scripted demos of `task` with its first robot and the script its task file names, as a user would record them."""
     import teleop
+    from scenes.tasks import find_task
 
+    spec = find_task(task)
+    robot = spec.robots[0]
     paths: list[Path] = []
     for seed in seeds:
-        session = teleop.Session(scene=task, robot="panda", seed=seed, control_hz=30)
-        script = teleop.ScriptDevice(ROOT / "scenes" / "scripts" / SCRIPTS[task])
+        session = teleop.Session(scene=task, robot=robot, seed=seed, control_hz=30)
+        script = teleop.ScriptDevice(spec.script_for(robot))
         with teleop.Recorder(session, directory, formats=("mcap",), verify="off") as rec:
             result = teleop.run_episode(session, [script])
         if not result.success:
@@ -54,7 +57,7 @@ def measure(quick: bool = False) -> dict[str, float]:
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="teleop-bench-generate-") as tmp:
         tmp = Path(tmp)
-        sources = {task: record_sources(task, tmp / "src" / task) for task in SCRIPTS}
+        sources = {task: record_sources(task, tmp / "src" / task) for task in TASKS}
         for task, paths in sources.items():
             # num = seeds with max_attempts = seeds: every seed is tried once, the rate is kept / tried
             s = _generate(paths, tmp / "gen" / task, seeds, workers=2, attempts=seeds)

@@ -16,7 +16,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
 SEEDS = 50  # new seeds per task (the issue's figure)
 QUICK_SEEDS = 10
 FIRST_NEW_SEED = 1000
@@ -32,26 +31,8 @@ def task_names() -> list[str]:
     return [n for n in names if not wanted or n in wanted]
 
 
-def record_sources(name: str, directory: Path, seeds=(0, 1, 2)) -> list[Path]:
-    """3 scripted demos of the task with its first robot (Panda but for handover), as a user would record them."""
-    import teleop
-    from scenes.tasks import find_task
-
-    task = find_task(name)
-    robot = task.robots[0]
-    paths: list[Path] = []
-    for seed in seeds:
-        session = teleop.Session(scene=name, robot=robot, seed=seed, control_hz=30)
-        script = teleop.ScriptDevice(task.script_for(robot))
-        with teleop.Recorder(session, directory, formats=("mcap",), verify="off") as rec:
-            result = teleop.run_episode(session, [script])
-        if not result.success:
-            raise RuntimeError(f"the scripted source of {name} (seed {seed}) did not succeed")
-        paths.extend(rec.paths)
-    return paths
-
-
 def measure(quick: bool = False) -> dict:
+    from bench.generate import record_sources
     from scenes.tasks import find_task
     from teleop.generate.generator import GenerateOptions, generate
 

@@ -27,6 +27,7 @@ from recorder.annotations import AnnotationError, Subtask, from_boundaries, read
 from recorder.format import ArmMeta
 from replay.episode import Episode, load_episode
 from scenes.robot import SceneError
+from scenes.task_judge import subtree
 from scenes.tasks import SubtaskSpec, task_for_episode
 
 CLOSED_BELOW = 0.5  # commanded gripper opening (1 open .. 0 closed) under which the gripper is closing
@@ -49,22 +50,13 @@ def task_subtasks(scene: str, extra: Mapping[str, Any] | None = None) -> tuple[S
     return task.subtasks
 
 
-def _subtree(model: mujoco.MjModel, root: int) -> set[int]:
-    """Body ids of `root` and every body below it."""
-    out = {root}
-    for b in range(root + 1, model.nbody):
-        if int(model.body_parentid[b]) in out:
-            out.add(b)
-    return out
-
-
 def _object_bodies(model: mujoco.MjModel, name: str) -> set[int]:
     """The bodies that make up a reference object (body, or the body of a site or geom)."""
     for kind, owner in ((mujoco.mjtObj.mjOBJ_BODY, None), (mujoco.mjtObj.mjOBJ_SITE, model.site_bodyid),
                         (mujoco.mjtObj.mjOBJ_GEOM, model.geom_bodyid)):
         i = mujoco.mj_name2id(model, kind, name)
         if i >= 0:
-            return _subtree(model, i if owner is None else int(owner[i]))
+            return subtree(model, i if owner is None else int(owner[i]))
     raise AnnotationError(f"the recorded scene has no body, site or geom named {name!r}")
 
 
@@ -76,7 +68,7 @@ class _Contacts:
         self.model = model
         self.data = mujoco.MjData(self.model)
         site = self.model.site(arm_meta.ee_site).id
-        self.gripper = _subtree(self.model, int(self.model.site_bodyid[site]))
+        self.gripper = subtree(self.model, int(self.model.site_bodyid[site]))
         self.actuator = self.model.actuator(arm_meta.gripper_actuator).id if arm_meta.gripper_actuator else None
         if self.actuator is not None:
             lo, hi = self.model.actuator_ctrlrange[self.actuator]

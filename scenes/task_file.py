@@ -228,19 +228,24 @@ class FileTask(Task):
         self.files[rel] = path
         return path
 
+    def _named_table(self, entry: Any, i: int, kind: str, fields: set[str]) -> tuple[str, str]:
+        """(where, name) of the i-th [[kind]] table, refused when it is no table, has no name or an unknown field."""
+        w = f"{self.where}: [[{kind}]] {i}"
+        if not isinstance(entry, dict):
+            raise TaskFileError(f"{w}: expected a table")
+        name = _required_str(entry, "name", w)
+        w = f"{self.where}: [[{kind}]] '{name}'"
+        unknown = sorted(set(entry) - fields)
+        if unknown:
+            raise TaskFileError(f"{w}: unknown field '{unknown[0]}' (fields: {', '.join(sorted(fields))})")
+        return w, name
+
     def _regions(self, entries: Any) -> dict[str, dict]:
         out: dict[str, dict] = {}
         if not isinstance(entries, list):
             raise TaskFileError(f"{self.where}: region: use [[region]] tables")
         for i, entry in enumerate(entries):
-            w = f"{self.where}: [[region]] {i}"
-            if not isinstance(entry, dict):
-                raise TaskFileError(f"{w}: expected a table")
-            name = _required_str(entry, "name", w)
-            w = f"{self.where}: [[region]] '{name}'"
-            unknown = sorted(set(entry) - REGION_FIELDS)
-            if unknown:
-                raise TaskFileError(f"{w}: unknown field '{unknown[0]}' (fields: {', '.join(sorted(REGION_FIELDS))})")
+            w, name = self._named_table(entry, i, "region", REGION_FIELDS)
             if not NAME.match(name) or name in out:
                 raise TaskFileError(f"{w}: name must be a unique identifier")
             for key in ("x", "y"):
@@ -257,17 +262,10 @@ class FileTask(Task):
         out: list[ObjectDef] = []
         seen: set[str] = set()
         for i, entry in enumerate(entries):
-            w = f"{self.where}: [[object]] {i}"
-            if not isinstance(entry, dict):
-                raise TaskFileError(f"{w}: expected a table")
-            name = _required_str(entry, "name", w)
-            w = f"{self.where}: [[object]] '{name}'"
+            w, name = self._named_table(entry, i, "object", OBJECT_FIELDS)
             if not NAME.match(name) or name in seen or name in self.regions:
                 raise TaskFileError(f"{w}: name: must be an identifier not used by another object or region")
             seen.add(name)
-            unknown = sorted(set(entry) - OBJECT_FIELDS)
-            if unknown:
-                raise TaskFileError(f"{w}: unknown field '{unknown[0]}' (fields: {', '.join(sorted(OBJECT_FIELDS))})")
             shapes = [s for s in SHAPES if s in entry]
             if len(shapes) != 1:
                 raise TaskFileError(f"{w}: give exactly one of {', '.join(SHAPES)}")
@@ -323,14 +321,7 @@ class FileTask(Task):
             raise TaskFileError(f"{self.where}: camera: use [[camera]] tables")
         out = []
         for i, entry in enumerate(entries):
-            w = f"{self.where}: [[camera]] {i}"
-            if not isinstance(entry, dict):
-                raise TaskFileError(f"{w}: expected a table")
-            name = _required_str(entry, "name", w)
-            w = f"{self.where}: [[camera]] '{name}'"
-            unknown = sorted(set(entry) - CAMERA_FIELDS)
-            if unknown:
-                raise TaskFileError(f"{w}: unknown field '{unknown[0]}' (fields: {', '.join(sorted(CAMERA_FIELDS))})")
+            w, name = self._named_table(entry, i, "camera", CAMERA_FIELDS)
             if not NAME.match(name) or name in ("front", "overhead", "room") or name.endswith("wrist"):
                 raise TaskFileError(f"{w}: name: must be an identifier other than front, overhead, room and the wrist cameras")
             if "pos" not in entry:

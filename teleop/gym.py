@@ -41,15 +41,20 @@ def builtin_pairs() -> list[tuple[str, str]]:
     return pairs
 
 
-def register_builtin() -> list[str]:
-    """Register (once) and list the ids of the built-in scene x robot environments."""
+def _register(pairs: list[tuple[str, str]]) -> list[str]:
+    """Register (once) and list the ids of these (scene, robot) environments."""
     ids = []
-    for scene, robot in builtin_pairs():
+    for scene, robot in pairs:
         name = env_id(scene, robot)
         if name not in gymnasium.registry:
             gymnasium.register(name, entry_point=ENTRY_POINT, kwargs={"scene": scene, "robot": robot})
         ids.append(name)
     return ids
+
+
+def register_builtin() -> list[str]:
+    """Register (once) and list the ids of the built-in scene x robot environments."""
+    return _register(builtin_pairs())
 
 
 ENV_IDS: list[str] = register_builtin()
@@ -66,13 +71,7 @@ def library_pairs() -> list[tuple[str, str]]:
 
 def register_library() -> list[str]:
     """Register (once) and list the ids of the library's tasks (`teleop/{task}-{robot}-v0`), read lazily."""
-    ids = []
-    for scene, robot in library_pairs():
-        name = env_id(scene, robot)
-        if name not in gymnasium.registry:
-            gymnasium.register(name, entry_point=ENTRY_POINT, kwargs={"scene": scene, "robot": robot})
-        ids.append(name)
-    return ids
+    return _register(library_pairs())
 
 
 LIBRARY_ENV_IDS: list[str] = register_library()

@@ -235,6 +235,18 @@ def _old_success(task: str, model: mujoco.MjModel, data: mujoco.MjData) -> bool:
     return bool(np.linalg.norm(cube - right) < 1.5 * size and cube[2] > size + 0.03)
 
 
+def _old_steps(task: str, ep) -> np.ndarray:
+    """(T,) bool: the old success test at every recorded state of `ep`."""
+    model = ep.build_model()
+    data = mujoco.MjData(model)
+    out = np.zeros(ep.steps, dtype=bool)
+    for k in range(ep.steps):
+        mujoco.mj_setState(model, data, ep.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(model, data)
+        out[k] = _old_success(task, model, data)
+    return out
+
+
 CASES = [("lift", "panda", "lift_pick.json"), ("stack", "panda", "stack_pick.json"), ("pick_place", "panda", "pick_place.json"),
          ("door", "panda", "door_push.json"), ("handover", "bimanual", "handover.json")]
 
@@ -246,14 +258,7 @@ def test_builtin_task_files_judge_recordings_at_the_same_steps(task, robot, scri
         result = teleop.run_episode(session, [teleop.ScriptDevice(ROOT / "scenes" / "scripts" / script)])
     assert result.success
     ep = load_episode(rec.paths[0])
-    new = judge_steps(ep)
-    model = ep.build_model()
-    data = mujoco.MjData(model)
-    old = np.zeros_like(new)
-    for k in range(ep.steps):
-        mujoco.mj_setState(model, data, ep.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
-        mujoco.mj_forward(model, data)
-        old[k] = _old_success(task, model, data)
+    new, old = judge_steps(ep), _old_steps(task, ep)
     assert old.any() and np.array_equal(new, old), (np.flatnonzero(new)[:5], np.flatnonzero(old)[:5])
 
 
@@ -265,14 +270,7 @@ def test_a_recording_made_before_task_files_replays_bit_exact_and_is_judged_the_
     ep = load_episode(path)
     assert TASK_FILE_KEY not in ep.meta.extra and ep.meta.success is True
     assert verify_file(path).bit_exact is True
-    new = judge_steps(ep)
-    model = ep.build_model()
-    data = mujoco.MjData(model)
-    old = np.zeros_like(new)
-    for k in range(ep.steps):
-        mujoco.mj_setState(model, data, ep.state[k], mujoco.mjtState.mjSTATE_INTEGRATION)
-        mujoco.mj_forward(model, data)
-        old[k] = _old_success("pick_place", model, data)
+    new, old = judge_steps(ep), _old_steps("pick_place", ep)
     assert old.any() and np.array_equal(new, old)
 
 
