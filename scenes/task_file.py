@@ -34,7 +34,7 @@ from scenes.errors import first_line
 from scenes.robot import BUILTIN_ROBOTS, SceneError
 from scenes.task_base import SUBTASK_KINDS, SubtaskSpec, Task
 from scenes.task_expr import ExpressionError, Node, parse, predicates
-from scenes.task_judge import UNITS_NUMERIC, Judge, JudgeError, Units, model_units
+from scenes.task_judge import OBJECTS_TEXT, UNITS_NUMERIC, Judge, JudgeError, Units, model_units
 from scenes.variation import Ranges, VariationError, parse_ranges
 
 BIMANUAL_ROBOTS = ("bimanual",)
@@ -548,6 +548,8 @@ class FileTask(Task):
                 kwargs["quat"] = cam["quat"]
             spec.worldbody.add_camera(**kwargs)
         spec.add_numeric(name=UNITS_NUMERIC, data=u.as_list(), size=4)
+        # the objects' bodies, fixed ones included (a bin placed per seed is state a policy needs)
+        spec.add_text(name=OBJECTS_TEXT, data=",".join(self.aliases.get(o.name, o.name) for o in self.objects))
         if assets:
             spec.assets = {**spec.assets, **assets}
         return assets

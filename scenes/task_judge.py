@@ -20,6 +20,7 @@ from scenes.errors import TeleopError
 from scenes.task_expr import PREDICATES, And, Node, Not, Number, Pred
 
 UNITS_NUMERIC = "teleop_task_units"
+OBJECTS_TEXT = "teleop_task_objects"  # custom text: the task's object bodies, comma-separated, in file order
 REST_SPEED = 0.05  # m/s: at_rest below this linear speed
 
 
@@ -57,6 +58,16 @@ def model_units(model: mujoco.MjModel) -> Units | None:
     adr, size = int(model.numeric_adr[i]), int(model.numeric_size[i])
     values = model.numeric_data[adr:adr + size]
     return Units(*(float(v) for v in values[:4]))
+
+
+def model_task_bodies(model: mujoco.MjModel) -> list[str] | None:
+    """The body of each task object the scene stored in the model (fixed ones too), or None (a model from before)."""
+    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, OBJECTS_TEXT)
+    if i < 0:
+        return None
+    adr, size = int(model.text_adr[i]), int(model.text_size[i])
+    text = bytes(model.text_data[adr:adr + size]).rstrip(b"\0").decode()
+    return [n for n in text.split(",") if n]
 
 
 def subtree(model: mujoco.MjModel, root: int) -> set[int]:

@@ -82,7 +82,7 @@ E2E_FILES = {
     "test_disk_full.py", "test_disk_full_commands.py", "test_eval.py", "test_export.py", "test_export_parallel.py",
     "test_export_render.py", "test_export_resume.py", "test_export_stats.py", "test_generate.py",
     "test_generate_resume.py", "test_keyboard.py", "test_object_state.py", "test_packaging.py", "test_recorder_e2e.py",
-    "test_robomimic.py", "test_takeover.py", "test_gym.py", "test_json_output.py", "test_cli_run.py",
+    "test_robomimic.py", "test_takeover.py", "test_gym.py", "test_json_output.py", "test_cli_run.py", "test_train_eval.py",
 }
 
 

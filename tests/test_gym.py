@@ -92,7 +92,8 @@ def test_cameras_none_observes_vectors_only_and_render_uses_the_front_camera():
     try:
         obs, _ = env.reset()
         assert set(obs) == {"observation.state", "observation.ee_pose", "observation.environment_state"}
-        assert obs["observation.environment_state"].shape == (7,)  # the door leaf's pose
+        assert obs["observation.environment_state"].shape == (14,)  # the frame's pose (placed per seed), the leaf's
+        assert env.objects is not None and env.objects.names == ["door_frame", "door"]
         frame = env.render()
         assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8 and frame.std() > 0
     finally:

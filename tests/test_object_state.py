@@ -72,6 +72,24 @@ def test_export_writes_the_objects_pose_in_the_robot_base_frame(lift_episode, tm
     assert float(ds[len(expected) - 1][ENV_STATE][2]) > float(ds[0][ENV_STATE][2]) + 0.04
 
 
+def test_a_fixed_object_placed_per_seed_is_in_the_state():
+    """pick_place's bin has no joint but stands left or right by seed: a policy must see where."""
+    seen = []
+    for seed in (0, 1, 2, 3):
+        env = TeleopEnv("pick_place", "panda", cameras=())
+        try:
+            obs, _ = env.reset(seed=seed)
+            assert env.objects is not None and env.objects.names == ["cube", "bin"]
+            bin_state = np.asarray(obs[ENV_STATE][7:], dtype=np.float64)
+            model, data = env.session.model, env.session.data
+            expected = _base_frame(data, model.body("link0").id, model.body("bin").id)
+            np.testing.assert_allclose(bin_state, expected, atol=1e-5)
+            seen.append(bin_state[:3])
+        finally:
+            env.close()
+    assert max(abs(a[1] - b[1]) for a in seen for b in seen) > 0.1  # both sides of the cube's area occur
+
+
 def test_no_object_state_leaves_the_feature_out(lift_episode, tmp_path):
     _export(lift_episode, tmp_path / "ds", "--no-object-state")
     info = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())

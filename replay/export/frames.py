@@ -30,6 +30,7 @@ import numpy as np
 
 from recorder.format import CONTROL_POLICY, ArmMeta, EpisodeMeta
 from scenes.variation import DISTRACTOR_PREFIX
+from scenes.task_judge import model_task_bodies
 
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -79,11 +80,15 @@ class ObjectLayout:
 
 
 def object_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> ObjectLayout:
-    """The bodies whose pose is the environment state: every body with a joint of its own whose
-    root (the world's child it hangs from) holds none of the arms' joints (so no robot link, finger or
-    base); distractors (scenes.variation) left out. Works on any recording's embedded model, old ones included."""
+    """The bodies whose pose is the environment state, in model order: every body with a joint of its own
+    whose root (the world's child it hangs from) holds none of the arms' joints (so no robot link, finger
+    or base), and every task object's body the scene listed (fixed ones too: where the bin stands varies
+    by seed); distractors (scenes.variation) left out. Works on any recording's embedded model, old ones
+    included (they list no objects)."""
     robot_roots = {int(model.body_rootid[model.jnt_bodyid[model.joint(j).id]]) for arm in meta.arms for j in arm.joints}
-    ids = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots
+    listed = {model.body(n).id for n in model_task_bodies(model) or () if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) >= 0}
+    ids = [b for b in range(1, model.nbody)
+           if (b in listed or (model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots))
            and not model.body(b).name.startswith(DISTRACTOR_PREFIX)]  # their number varies: no task's state
     names = [model.body(b).name or f"body{b}" for b in ids]
     base = min(robot_roots) if robot_roots else 0

@@ -1,0 +1,55 @@
+"""bench/train_eval.sh, the loop of issue 21, run whole at toy size: sources -> generate ->
+export -> lerobot-train -> teleop eval, one JSON object on stdout.
+
+The figures themselves (success >= 0.9 / 0.8 / 0.7) are measured by the bench, not here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "bench" / "train_eval.sh"
+
+
+def _env() -> dict[str, str]:
+    bindir = Path(sys.executable).parent
+    return {**os.environ, "PYTHON": sys.executable, "TELEOP": str(bindir / "teleop"),
+            "LEROBOT_TRAIN": str(bindir / "lerobot-train"), "WORKERS": "0", "HF_HUB_OFFLINE": "1"}
+
+
+def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
+    work = tmp_path / "stack"
+    proc = subprocess.run(
+        ["bash", str(SCRIPT), "stack", "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "2", "--work", str(work)],
+        capture_output=True, text=True, timeout=900, env=_env(),
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 1, proc.stdout  # one JSON object; progress went to stderr
+    report = json.loads(lines[0])
+    assert report["task"] == "stack" and report["demos"] == 2 and report["steps"] == 2
+    assert report["action"] == "ee_pose"  # the task's default: a hand target, not joint targets
+    assert 0.0 <= report["success_rate"] <= 1.0 and report["ci95"][0] <= report["success_rate"] <= report["ci95"][1]
+    assert report["train_seconds"] >= 0
+    evaluated = json.loads((work / "eval.json").read_text())
+    assert len(evaluated["per_episode"]) == 2 and evaluated["action"] == "ee_pose"
+    info = json.loads((work / "ds" / "meta" / "info.json").read_text())
+    assert info["features"]["action"]["names"][:4] == ["x", "y", "z", "qw"]
+    assert info["features"]["observation.environment_state"]["names"][7] == "cube_base.x"
+    config = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert config["temporal_ensemble_coeff"] == 0.01 and config["n_action_steps"] == 1
+
+
+@pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"]])
+def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
+    proc = subprocess.run(["bash", str(SCRIPT), *args, "--work", str(tmp_path / "w")], capture_output=True, text=True,
+                          timeout=60, env=_env())
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    assert proc.stdout == "" and len(proc.stderr.strip().splitlines()) == 1 and "train_eval.sh" in proc.stderr
