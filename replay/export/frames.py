@@ -29,8 +29,8 @@ import mujoco
 import numpy as np
 
 from recorder.format import CONTROL_POLICY, ArmMeta, EpisodeMeta
-from scenes.variation import DISTRACTOR_PREFIX
 from scenes.task_judge import model_task_bodies
+from scenes.variation import DISTRACTOR_PREFIX
 
 ACTION_MODES = ("joint", "ee_delta", "ee_pose")
 POSE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz")
