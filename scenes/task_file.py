@@ -549,8 +549,7 @@ class FileTask(Task):
             spec.worldbody.add_camera(**kwargs)
         spec.add_numeric(name=UNITS_NUMERIC, data=u.as_list(), size=4)
         # the objects' bodies, fixed ones included (a bin placed per seed is state a policy needs)
-        if self.objects:  # MuJoCo refuses an empty text
-            spec.add_text(name=OBJECTS_TEXT, data=",".join(self.aliases.get(o.name, o.name) for o in self.objects))
+        spec.add_text(name=OBJECTS_TEXT, data=",".join(self.aliases.get(o.name, o.name) for o in self.objects))  # never empty
         if assets:
             spec.assets = {**spec.assets, **assets}
         return assets

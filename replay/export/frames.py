@@ -86,7 +86,7 @@ def object_layout(meta: EpisodeMeta, model: mujoco.MjModel) -> ObjectLayout:
     by seed); distractors (scenes.variation) left out. Works on any recording's embedded model, old ones
     included (they list no objects)."""
     robot_roots = {int(model.body_rootid[model.jnt_bodyid[model.joint(j).id]]) for arm in meta.arms for j in arm.joints}
-    listed = {model.body(n).id for n in model_task_bodies(model) or () if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) >= 0}
+    listed = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in model_task_bodies(model) or ()}  # -1: no such body
     ids = [b for b in range(1, model.nbody)
            if (b in listed or (model.body_jntnum[b] > 0 and int(model.body_rootid[b]) not in robot_roots))
            and not model.body(b).name.startswith(DISTRACTOR_PREFIX)]  # their number varies: no task's state
