@@ -106,3 +106,41 @@ def test_stop_ends_tasks_in_flight_and_the_workers_go():
         runner.submit(_sleep, 60.0)
         runner.stop()
     assert runner.running == 0 and pids and not any(_alive(pid) for pid in pids)
+
+
+def _big_result(marker: str, mbytes: int) -> bytes:
+    """A result large enough that sending it back takes many pipe writes (as generated episodes do)."""
+    data = os.urandom(mbytes << 20)
+    Path(marker).touch()
+    return data
+
+
+def test_stop_while_a_result_is_being_sent_back_does_not_hang(tmp_path):
+    """A worker terminated half-way through sending a result leaves part of a message in the result pipe;
+    the pool's reader must not wait for the rest forever (generate's Ctrl-C would never exit).
+
+    The send window is timed first (marker file to result taken), then workers are stopped at
+    points spread across it."""
+    def started(name: str) -> Runner:
+        runner = Runner(2)
+        runner.wait_started()
+        runner.submit(_big_result, str(tmp_path / name), 256)
+        while not (tmp_path / name).exists():
+            time.sleep(0.002)
+        return runner
+
+    with started("timed") as runner:
+        t0 = time.perf_counter()
+        runner.wait()
+        window_s = time.perf_counter() - t0
+    hung = []
+    for fraction in (0.2, 0.4, 0.6, 0.8):
+        runner = started(f"stopped-{fraction}")
+        time.sleep(fraction * window_s)
+        runner.stop()
+        closer = threading.Thread(target=runner.close, daemon=True)
+        closer.start()
+        closer.join(30.0)
+        if closer.is_alive():
+            hung.append(fraction)
+    assert not hung, f"close() hung after stop() at {hung} of the {window_s:.2f} s send window"

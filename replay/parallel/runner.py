@@ -33,6 +33,7 @@ from replay.parallel.interrupts import is_cancelled
 from scenes.errors import first_line
 
 POLL_S = 0.25  # how often a wait looks at the cancellation token and calls its poll (s)
+STOP_GRACE_S = 5.0  # how long a stopped worker has to exit on SIGTERM before it is killed (s)
 
 
 class WorkerLost(ClusterError):
@@ -239,9 +240,24 @@ class Runner:
             for fut in self._futures.values():
                 fut.cancel()
             # ProcessPoolExecutor.terminate_workers() comes with Python 3.14; until then, its process table.
-            for process in list((getattr(self._pool, "_processes", None) or {}).values()):
+            processes = list((getattr(self._pool, "_processes", None) or {}).values())
+            for process in processes:
                 with contextlib.suppress(Exception):
                     process.terminate()
+            # A worker terminated half-way through sending a result (a generated episode is megabytes)
+            # leaves part of a message in the result pipe, and the pool's reader thread would wait for
+            # the rest forever, so `close` would never return. This process holds the pipe's write end
+            # too: closed here, the reader meets the pipe's end once the workers are gone, and the pool
+            # shuts down as broken.
+            for process in processes:
+                with contextlib.suppress(Exception):
+                    process.join(STOP_GRACE_S)
+                    if process.is_alive():
+                        process.kill()
+            writer = getattr(getattr(self._pool, "_result_queue", None), "_writer", None)
+            if writer is not None:
+                with contextlib.suppress(OSError):
+                    writer.close()
         elif self._ray is not None:
             for ref in self._futures.values():
                 with contextlib.suppress(Exception):
