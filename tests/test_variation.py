@@ -198,14 +198,22 @@ def test_looks_export_loads_in_lerobot_with_equal_actions_and_other_images(recor
 
 
 def test_one_look_and_nothing_varied_is_the_plain_export(recorded, tmp_path):
-    plain = export_dataset([recorded[0]], _opts(tmp_path / "plain"), log=lambda line: None)
-    same = export_dataset([recorded[0]], _opts(tmp_path / "same", looks=1), log=lambda line: None)
+    """Compared as PNG frames, losslessly stored: H.264 through LeRobot's streaming encoder is not
+    byte-reproducible (the same frames fed twice gave another file in about 1 run in 16 on a loaded
+    2-core machine, a few levels of codec noise in some 2-frame GOPs), so MP4 bytes cannot show it."""
+    import pyarrow.parquet as pq
+
+    plain = export_dataset([recorded[0]], _opts(tmp_path / "plain", video=False), log=lambda line: None)
+    same = export_dataset([recorded[0]], _opts(tmp_path / "same", looks=1, video=False), log=lambda line: None)
     assert plain.episodes == same.episodes == 1
 
-    def files(root):
-        return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file() and "videos" in p.parts}
+    def table(root):
+        return pq.read_table(next((root / "data").rglob("*.parquet"))).to_pydict()
 
-    assert files(tmp_path / "plain") == files(tmp_path / "same")  # image for image, byte for byte
+    a, b = table(tmp_path / "plain"), table(tmp_path / "same")
+    assert len(a[FRONT]) == len(b[FRONT]) > 0 and all(image["bytes"] for image in a[FRONT])
+    assert a == b  # image for image (PNG bytes), value for value
+    assert (tmp_path / "plain" / "meta" / "stats.json").read_bytes() == (tmp_path / "same" / "meta" / "stats.json").read_bytes()
     assert "variation" not in _open(tmp_path / "plain").meta.episodes.column_names
 
 
