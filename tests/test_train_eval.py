@@ -26,9 +26,9 @@ def _env() -> dict[str, str]:
 
 def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
     work = tmp_path / "stack"
-    proc = subprocess.run(
-        ["bash", str(SCRIPT), "stack", "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "2", "--work", str(work)],
-        capture_output=True, text=True, timeout=900, env=_env(),
+    proc = subprocess.run(  # --work relative to where it is run from, as a user types it
+        ["bash", str(SCRIPT), "stack", "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "2", "--work", "stack"],
+        capture_output=True, text=True, timeout=900, env=_env(), cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
@@ -44,10 +44,17 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
     assert info["features"]["action"]["names"][:4] == ["x", "y", "z", "qw"]
     assert info["features"]["observation.environment_state"]["names"][7] == "cube_base.x"
     config = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
-    assert config["temporal_ensemble_coeff"] == 0.01 and config["n_action_steps"] == 1
+    assert config["temporal_ensemble_coeff"] == 0.1 and config["n_action_steps"] == 1  # stack's: older count more
+    assert report["ensemble"] == 0.1
+    # stack's rate: 3e-4 falling on a cosine, as the report says
+    assert report["lr"] == 3e-4 and report["schedule"] == "cosine"
+    trained = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
+    assert trained["scheduler"]["type"] == "cosine_decay_with_warmup" and trained["optimizer"]["lr"] == 3e-4
 
 
-@pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"]])
+@pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"],
+                                  ["lift", "--schedule", "linear"], ["lift", "--lr", "fast"], ["lift", "--demos", "0"],
+                                  ["lift", "--ensemble", "x"]])
 def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
     proc = subprocess.run(["bash", str(SCRIPT), *args, "--work", str(tmp_path / "w")], capture_output=True, text=True,
                           timeout=60, env=_env())
