@@ -81,6 +81,8 @@ class ArmIK:
         self.home = np.asarray(arm.home, dtype=float)
         self.accel_step = MAX_JOINT_ACCEL * dt  # rad/s of velocity change per solve
         self.target = mink.SE3.identity()  # the frame task's target, rewritten in place each solve
+        self._target_quat, self._target_pos = self.target.wxyz_xyz[:4], self.target.wxyz_xyz[4:]  # views
+        self._range = list(zip(self.q_min.tolist(), self.q_max.tolist()))  # (low, high) per joint, for the range check
         try:
             self.qp: ArmQP | None = ArmQP(
                 self.configuration, self.frame_task, self.posture_task, self.limits, dt, SOLVER_DAMPING
@@ -116,11 +118,10 @@ class ArmIK:
 
     def solve(self, pos: np.ndarray, quat: np.ndarray) -> bool:
         """One IK step toward (pos, wxyz quat); False (and q unchanged) if it failed."""
-        target = self.target.wxyz_xyz
-        target[:4] = quat
-        target[4:] = pos
+        self._target_quat[:] = quat
+        self._target_pos[:] = pos
         self.frame_task.transform_target_to_world = self.target
-        velocity = self._velocity()
+        velocity = self.qp.solve() if self.qp is not None else self._velocity()
         if velocity is None or not math.isfinite(velocity.dot(velocity)):  # NaN or inf in any entry
             self.configuration.update(self.q)
             self.velocity[:] = 0.0
@@ -131,8 +132,21 @@ class ArmIK:
         step = self.accel_step
         np.maximum(velocity, self.velocity - step, out=velocity)
         np.minimum(velocity, self.velocity + step, out=velocity)
-        self.configuration.integrate_inplace(velocity, self.dt)
-        qpos = self.configuration.data.qpos
+        # Configuration.integrate_inplace's calls, made here (the IK model has no equality constraints).
+        model, data = self.model, self.configuration.data
+        qpos = data.qpos
+        mujoco.mj_integratePos(model, qpos, velocity, self.dt)
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        inside = True
+        for value, (low, high) in zip(qpos.tolist(), self._range):
+            if not low <= value <= high:  # outside, or NaN
+                inside = False
+                break
+        if inside:  # the usual tick: the range clip below would change nothing
+            self.velocity = velocity
+            self.q = qpos.copy()
+            return True
         q = np.minimum(np.maximum(qpos, self.q_min), self.q_max)
         if not math.isfinite(q.dot(q)):
             self.configuration.update(self.q)

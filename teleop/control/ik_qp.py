@@ -7,13 +7,16 @@ every task and limit into new arrays and goes through qpsolvers; on a fixed arm
 (hinge and slide joints only, so q1 - q2 is the tangent difference) the same QP
 is built with:
 
-- buffers allocated once; the frame task's Jacobian and error taken once
-  (`FrameTask.compute_qp_residual`); the posture rows (cost * I) constant;
+- buffers allocated once; the frame's pose and Jacobian read once, and its error,
+  log Jacobian and weights taken as mink's FrameTask takes them (its compiled SE(3)
+  operations where mink has them, else `FrameTask.compute_qp_residual`);
+- the posture task's rows (cost * I) constant;
 - configuration and velocity limits as daqp's box bounds on dq: their rows
   (+-I) never change, only the bounds do, so nothing is stacked;
 - collision-avoidance rows only when a pair of geoms can be within the detection
-  distance (a conservative bound from bounding spheres and boxes); farther than
-  that mink's rows are all zero with an infinite bound, and are left out;
+  distance (a conservative bound: for a fixed box and geoms that move with the
+  end-effector site, one point against one box); farther than that mink's rows
+  are all zero with an infinite bound, and are left out;
 - `daqp.solve` called directly.
 """
 
@@ -25,6 +28,11 @@ import daqp
 import mink
 import mujoco
 import numpy as np
+
+try:  # mink's compiled SE(3) operations (mink >= 1.3 on most platforms); the residual falls back to mink's own call
+    from mink.lie import _lie_ops_c as se3_ops
+except ImportError:  # pragma: no cover - depends on the installed mink
+    se3_ops = None
 
 INF = 1e30  # daqp's infinity (qpsolvers passes it for absent lower bounds)
 HINGE_OR_SLIDE = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
@@ -43,9 +51,14 @@ class PairFilter:
     half-size + r_a + detection distance from the box centre, the pair is farther
     apart than the detection distance and mink gives it no row (mj_geomDistance
     returns the cap). Planes, height fields and unbounded geoms are always near.
+
+    When b never moves (welded to the world) and every a moves rigidly with the
+    end-effector site, all the a geoms lie within one sphere around the site, so
+    one point is tested against one box, in plain floats: the hand against the
+    table, every tick. Otherwise each a's centre is tested (numpy).
     """
 
-    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, limit: mink.CollisionAvoidanceLimit):
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, limit: mink.CollisionAvoidanceLimit, site: int = -1):
         pairs = np.array(limit.geom_id_pairs, dtype=int).reshape(-1, 2)
         rbound = model.geom_rbound
         swap = rbound[pairs[:, 0]] > rbound[pairs[:, 1]]
@@ -57,19 +70,44 @@ class PairFilter:
         self.always = bool(np.any(kept))
         margin = limit.collision_detection_distance + 1e-9  # m
         self.xpos, self.xmat = data.geom_xpos, data.geom_xmat  # views: MjData's buffers stay put
-        # One group per box geom b: (b, its a geoms, box centre in b's frame or None if 0, per-pair reach per axis).
+        self.site_xpos = data.site_xpos[site] if site >= 0 else None  # a view of the site's position
+        weld = model.body_weldid
+        site_weld = int(weld[model.site_bodyid[site]]) if site >= 0 else -1
+        # Groups per box geom b. Point groups: (centre in world, axes as rows or None if the world's, reach per
+        # axis), for a fixed box and a's that move with the site. Geom groups: (b, its a geoms, box centre in b's
+        # frame or None if 0, per-pair reach per axis, b's orientation).
+        self.points: list[tuple[tuple[float, float, float], list[list[float]] | None, tuple[float, float, float]]] = []
         self.groups = []
         for box in np.unique(b):
             others = a[b == box]
             center = model.geom_aabb[box, :3].copy()
-            reach = model.geom_aabb[box, 3:][None, :] + (rbound[others] + margin)[:, None]  # m, (pairs, 3)
+            half = model.geom_aabb[box, 3:]
             rot = data.geom_xmat[box].reshape(3, 3)  # a view: b's orientation as the data holds it now
+            fixed = int(weld[model.geom_bodyid[box]]) == 0
+            if fixed and site_weld > 0 and all(int(weld[model.geom_bodyid[g]]) == site_weld for g in others):
+                # Every a within `radius` of the site, whatever the arm's pose (they are welded to its body).
+                radius = max(float(np.linalg.norm(data.geom_xpos[g] - self.site_xpos)) + float(rbound[g]) for g in others)
+                world = data.geom_xpos[box] + rot @ center
+                axes = None if np.array_equal(rot, np.eye(3)) else rot.T.tolist()
+                reach = tuple(float(h) + radius + margin for h in half)
+                self.points.append((tuple(world.tolist()), axes, reach))
+                continue
+            reach = half[None, :] + (rbound[others] + margin)[:, None]  # m, (pairs, 3)
             self.groups.append((int(box), others, center if np.any(center) else None, reach, rot))
 
     def any_near(self) -> bool:
         """True if some pair may be closer than the detection distance (geom poses as now in the data)."""
         if self.always:
             return True
+        if self.points:
+            x, y, z = self.site_xpos.tolist()
+            for (cx, cy, cz), axes, (rx, ry, rz) in self.points:
+                dx, dy, dz = x - cx, y - cy, z - cz
+                if axes is not None:  # the offset in the box's frame
+                    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = axes
+                    dx, dy, dz = a0 * dx + a1 * dy + a2 * dz, b0 * dx + b1 * dy + b2 * dz, c0 * dx + c1 * dy + c2 * dz
+                if abs(dx) <= rx and abs(dy) <= ry and abs(dz) <= rz:
+                    return True
         xpos = self.xpos
         for box, others, center, reach, rot in self.groups:
             local = xpos[others]  # a copy
@@ -109,16 +147,28 @@ class ArmQP:
             raise UnsupportedProblem("posture task with LM damping")
         nv = model.nv
         self.configuration = configuration
+        self.model, self.data = model, configuration.data
         self.frame_task = frame_task
         self.posture_task = posture_task
         self.dt = dt
         self.damping = damping
         self.nv = nv
-        # Objective: W = [frame rows (6); posture rows (nv, constant)], e the weighted errors
-        # negated (mink's c = -(e W) = (-e) W exactly: negation is exact).
+        self.site = -1
+        if frame_task.frame_type == "site":
+            self.site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, frame_task.frame_name)
+        # mink's weighted frame residual read directly (site frames, its compiled SE(3) ops); else its own call
+        self.direct = se3_ops is not None and self.site >= 0
+        self.jac = np.empty((6, nv))  # the site's Jacobian, world-aligned (MuJoCo's)
+        self.local = np.empty((6, nv))  # ... in the site's frame
+        # Objective: W = [frame rows (6); posture rows (nv, constant)], e the weighted errors negated
+        # (mink's c = -(e W) = (-e) W exactly: negation is exact). H = W'W + (damping + mu) I, f = e W.
+        # The tasks' costs and gains are read here, once (nothing changes them after the IK is built).
         self.W = np.zeros((6 + nv, nv))
         self.W[6:] = posture_task.cost[:, None] * np.eye(nv)
         self.e = np.zeros(6 + nv)
+        self.Jw, self.ew, self.pe = self.W[:6], self.e[:6], self.e[6:]  # views: frame task's Jw and -ew, posture's -ew
+        self.negcost = -frame_task.cost[:, None]
+        self.posture_scale = posture_task.gain * np.asarray(posture_task.cost, dtype=float)  # e's posture part / (q - q*)
         self.H = np.empty((nv, nv))
         self.f = np.empty(nv)
         self.diag = self.H.reshape(-1)[:: nv + 1]  # view of H's diagonal
@@ -140,16 +190,26 @@ class ArmQP:
                     bound = dt * limit.limit
                     self.vel_bound[limit.indices] = np.minimum(self.vel_bound[limit.indices], bound)
             elif isinstance(limit, mink.CollisionAvoidanceLimit):
-                self.collisions.append((limit, PairFilter(model, configuration.data, limit)))
+                self.collisions.append((limit, PairFilter(model, configuration.data, limit, self.site)))
             else:
                 raise UnsupportedProblem(f"limit {type(limit).__name__}")
         rows = sum(limit.max_num_contacts for limit, _ in self.collisions)
         self.A = np.zeros((rows, nv))  # collision rows, filled only when near
-        self.bupper = np.empty(nv + rows)
-        self.blower = np.full(nv + rows, -INF)
+        bounds = np.empty((2, nv + rows))  # daqp's upper and lower bounds, one row each
+        bounds[1] = -INF
+        self.bupper, self.blower = bounds[0], bounds[1]
         self.sense = np.zeros(nv + rows, dtype=c_int)
-        self.upper = self.bupper[:nv]  # views: the box part
-        self.lower = self.blower[:nv]
+        self.box = bounds[:, :nv]  # the box part: rows upper, lower
+        self.upper, self.lower = self.bupper[:nv], self.blower[:nv]  # views
+        self.no_rows = (self.A[:0], self.bupper[:nv], self.blower[:nv], self.sense[:nv])  # daqp's arguments, no collision rows
+        self.neg_vel_bound = -self.vel_bound
+        # One configuration limit (the usual case): both sides of the box at once. Rows [hi; lo] - q, times gain,
+        # are gain * (hi - q) and gain * (lo - q) = -(gain * (q - lo)) exactly (a - b = -(b - a) in IEEE), so
+        # min(vel, the first) and max(-vel, the second) are mink's rows' bounds dq <= .. and -dq <= .. negated.
+        if len(self.config) == 1:
+            gain, hi, lo = self.config[0]
+            self.range2 = np.stack([hi, lo])
+            self.gain = gain
 
     def _bounds(self, q: np.ndarray) -> None:
         """Box on dq: velocity limits and, per configuration limit, gain * distance to the range.
@@ -160,6 +220,13 @@ class ArmQP:
         if not self.config:
             upper[:] = self.vel_bound
             np.negative(self.vel_bound, out=lower)
+            return
+        if len(self.config) == 1:
+            box = self.box
+            np.subtract(self.range2, q, out=box)
+            box *= self.gain
+            np.minimum(self.vel_bound, upper, out=upper)
+            np.maximum(self.neg_vel_bound, lower, out=lower)
             return
         for i, (gain, hi, lo) in enumerate(self.config):
             np.subtract(hi, q, out=s)
@@ -186,26 +253,56 @@ class ArmQP:
                 m += k
         return m
 
+    def _frame_residual(self) -> float:
+        """The frame task's weighted Jacobian into Jw and negated weighted error into ew; mink's LM term mu.
+
+        As FrameTask.compute_qp_residual: e = log(T_bt) (body twist), J = -jlog(T_tb) A J_site, then
+        cost * J and cost * (-gain * e); computed from the site's pose and Jacobian read once."""
+        task = self.frame_task
+        if not self.direct:
+            weighted_jacobian, weighted_error, mu = task.compute_qp_residual(self.configuration)
+            self.Jw[:] = weighted_jacobian
+            np.negative(weighted_error, out=self.ew)
+            return mu
+        data, site, jac, ops = self.data, self.site, self.jac, se3_ops
+        xmat = data.site_xmat[site]
+        frame = ops.xmat_xpos_to_wxyz_xyz(xmat, data.site_xpos[site])
+        target = task.transform_target_to_world.wxyz_xyz
+        error = ops.se3_rminus(target, frame)
+        jlog = ops.se3_jlog(ops.se3_inverse_multiply(target, frame))
+        mujoco.mj_jacSite(self.model, data, jac[:3], jac[3:], site)
+        np.matmul(ops.se3_rotation_adjoint_from_xmat(xmat), jac, out=self.local)  # in the site's frame
+        np.matmul(jlog, self.local, out=self.Jw)  # -(-jlog @ J): negated below with the cost
+        cost = task.cost
+        self.Jw *= self.negcost
+        ew = self.ew
+        if task.gain == 1.0:  # -(cost * (-1.0 * e)) = cost * e exactly
+            np.multiply(cost, error, out=ew)
+        else:
+            np.multiply(error, -task.gain, out=ew)
+            ew *= cost
+            np.negative(ew, out=ew)
+        return task.lm_damping * float(ew.dot(ew))
+
     def solve(self) -> np.ndarray | None:
         """Tangent velocity toward the tasks' targets under the limits; None if infeasible."""
-        configuration, nv, W, e, H, f = self.configuration, self.nv, self.W, self.e, self.H, self.f
-        q = configuration.data.qpos
-        weighted_jacobian, weighted_error, mu = self.frame_task.compute_qp_residual(configuration)
-        W[:6] = weighted_jacobian
-        np.negative(weighted_error, out=e[:6])
-        posture = self.posture_task
-        err = e[6:]
-        np.subtract(q, posture.target_q, out=err)  # q - q*: the tangent difference for hinge/slide
-        if posture.gain != 1.0:
-            err *= posture.gain
-        err *= posture.cost  # -(cost * (-gain * (q - q*)))
+        nv, H, f, W = self.nv, self.H, self.f, self.W
+        q = self.data.qpos
+        mu = self._frame_residual()
+        # Posture rows cost * I, error cost * gain * (q - q*) (the tangent difference for hinge/slide joints).
+        pe = self.pe
+        np.subtract(q, self.posture_task.target_q, out=pe)
+        pe *= self.posture_scale
         np.matmul(W.T, W, out=H)
         self.diag += self.damping + mu
-        np.matmul(e, W, out=f)
+        np.matmul(self.e, W, out=f)
         self._bounds(q)
         m = self._collision_rows() if self.collisions else 0
-        n = nv + m
-        x, _, exitflag, _ = daqp.solve(H, f, self.A[:m], self.bupper[:n], self.blower[:n], self.sense[:n])
+        if m:
+            n = nv + m
+            x, _, exitflag, _ = daqp.solve(H, f, self.A[:m], self.bupper[:n], self.blower[:n], self.sense[:n])
+        else:
+            x, _, exitflag, _ = daqp.solve(H, f, *self.no_rows)
         if exitflag <= 0:
             return None
         x /= self.dt

@@ -193,7 +193,10 @@ class Session:
         """One control tick. Episode events in the commands act first, so "start"
         records this tick and "reset" applies the commands to the new scene.
         `ctrl` (nu joint and gripper targets) drives the tick instead of IK."""
-        events = tuple(e for c in commands for e in c.events)
+        events: tuple[str, ...] = ()
+        for command in commands:
+            if command.events:  # most ticks carry none
+                events += tuple(command.events)
         for event in events:
             self.handle_event(event)
         recorder = self.recorder
