@@ -125,6 +125,10 @@ if [ ! -f train_seconds ]; then
                    --optimizer.grad_clip_norm=10 --scheduler.type=cosine_decay_with_warmup --scheduler.num_warmup_steps=500
                    --scheduler.num_decay_steps="$steps" --scheduler.peak_lr="$lr" --scheduler.decay_lr=1e-5)
     fi
+    # ACT normalizes the types its preset names (images, robot state, action) and passes any other
+    # through as it is: without ENV here the objects' poses reach the network raw, in metres (a spread
+    # of a few centimetres, against unit spreads for the joints).
+    normalization='{"VISUAL": "MEAN_STD", "STATE": "MEAN_STD", "ENV": "MEAN_STD", "ACTION": "MEAN_STD"}'
     rm -rf train
     t0=$(date +%s)
     # ACT on the robot state and the objects' poses, sized for 2 CPU cores: one encoder layer of width 128
@@ -139,6 +143,7 @@ if [ ! -f train_seconds ]; then
         --policy.dim_model=128 --policy.n_heads=4 --policy.dim_feedforward=512 --policy.n_encoder_layers=1 \
         --policy.use_vae=false --policy.chunk_size=20 --policy.n_action_steps=1 \
         --policy.temporal_ensemble_coeff="$ensemble" "${optimizer[@]}" \
+        --policy.normalization_mapping="$normalization" \
         --batch_size="${BATCH:-64}" --steps="$steps" --num_workers="${WORKERS:-2}" --wandb.enable=false --save_freq="$steps" \
         --log_freq=500 --output_dir="$work/train" 2>&1 | tr '\r' '\n' | sed -u -E 's/^Training:.*\](INFO )/\1/' \
         | grep --line-buffered -v "^Training:" >&2 || true
