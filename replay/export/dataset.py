@@ -98,6 +98,9 @@ class ExportOptions:
     variation_meta: bool | None = None
     # A parallel export's shard: (index among the chosen episodes, look index or None) of the variants it exports.
     variant_plan: tuple[tuple[int, int | None], ...] | None = None
+    # Leave out idle frames (replay/export/stream.py: action, robot state and objects' poses within IDLE_TOLERANCE
+    # of the last frame kept): a person's pauses and the waits for a gripper, which teach a policy to stand still.
+    drop_idle: bool = False
 
     @property
     def variation_key(self) -> dict | None:
@@ -123,6 +126,7 @@ class ExportSummary:
     interrupted: bool = False
     backend: str = ""
     looks: int = 1  # LeRobot episodes written per recorded one (each its own look)
+    idle_dropped: int = 0  # idle frames left out (drop_idle)
 
     @property
     def frames_per_s(self) -> float:
@@ -139,6 +143,9 @@ class ExportSummary:
         )
         if self.looks > 1:
             text += f"; {self.looks} looks of each recorded episode"
+        if self.idle_dropped:
+            share = self.idle_dropped / (self.idle_dropped + self.frames)
+            text += f"; {self.idle_dropped} idle frames left out ({share:.0%})"
         if self.resumed_from:
             text += f"; resumed after the {self.resumed_from} episode{'s' * (self.resumed_from != 1)} already exported"
         skipped = []
@@ -480,6 +487,7 @@ def export_serial(paths: Iterable[str | Path], opts: ExportOptions, log: Callabl
     for part in parts:
         summary.episodes += part.episodes
         summary.frames += part.frames
+        summary.idle_dropped += part.idle_dropped
         summary.interrupted = summary.interrupted or part.interrupted
         summary.backend = summary.backend or part.backend
     summary.seconds = time.perf_counter() - t0
@@ -642,7 +650,7 @@ def _write(ds, chosen: list[Unit], first: Episode, opts: ExportOptions, cameras,
     next_variation = record_column(ds) if column else None
     stream.start(_loaders(chosen, first), opts.action, lambda ep: opts.task or ep.meta.task or ep.meta.scene or "task", keys,
                  channel_first, intervention=INTERVENTION in ds.meta.features, objects=ENV_STATE in ds.meta.features,
-                 cameras_added=added, prepare=prepare)
+                 cameras_added=added, prepare=prepare, drop_idle=opts.drop_idle)
     total = sum(e.steps for e in chosen)
     bar = tqdm(total=total, unit="frame", desc=f"episode 1/{len(chosen)}", disable=not opts.progress,
                file=sys.stderr, dynamic_ncols=True)
@@ -661,6 +669,8 @@ def _write(ds, chosen: list[Unit], first: Episode, opts: ExportOptions, cameras,
             _, interrupted = shielded(ds.save_episode)
             summary.episodes += 1
             summary.frames += item.steps
+            summary.idle_dropped += item.dropped
+            bar.update(item.dropped)  # the bar counts recorded steps
             if item.index + 1 < len(chosen):
                 bar.set_description(f"episode {item.index + 2}/{len(chosen)}")
             if opts.on_episode is not None:

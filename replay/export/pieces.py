@@ -42,8 +42,8 @@ FORMAT = 1
 PIECE_EPISODES = 20  # episodes per piece: a kill loses at most this many; reopening a dataset costs ~1 s
 # The options a resume must share with the export it continues (the rest only change how it runs).
 SAME_OPTIONS = ("repo_id", "cameras", "image_size", "action", "task", "only_success", "video", "vcodec", "intervention",
-                "object_state", "add_cameras", "variation_key")
-OPTION_DEFAULTS = {"add_cameras": [], "variation_key": None}  # what a journal written before an option existed had, in effect
+                "object_state", "add_cameras", "variation_key", "drop_idle")
+OPTION_DEFAULTS = {"add_cameras": [], "variation_key": None, "drop_idle": False}  # what a journal written before an option existed had, in effect
 
 
 class ResumeError(TeleopError, ValueError):

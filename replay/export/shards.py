@@ -157,6 +157,8 @@ def _plan_options(opts: ExportOptions) -> dict:
         plan["add_cameras"] = list(opts.add_cameras)
     if opts.variation_key is not None:  # likewise
         plan["variation"] = opts.variation_key
+    if opts.drop_idle:  # likewise
+        plan["drop_idle"] = True
     return plan
 
 
@@ -196,7 +198,7 @@ def _parts(opts: ExportOptions, chosen: list, runs: list[range], log: Callable[[
 
 def _mark_done(shard: "_Shard", result: ExportSummary) -> None:
     fields = {"episodes": result.episodes, "frames": result.frames, "fps": result.fps, "backend": result.backend,
-              "dataset_episodes": result.dataset_episodes}
+              "dataset_episodes": result.dataset_episodes, "idle_dropped": result.idle_dropped}
     tmp = shard.out.parent / f"shard_{shard.index:03d}.done.tmp"
     tmp.write_text(json.dumps(fields))
     tmp.replace(shard.out.parent / f"shard_{shard.index:03d}.done")
@@ -251,6 +253,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     summary.seconds = time.perf_counter() - t0
     summary.episodes = sum(r.episodes for _, r in keep)
     summary.frames = sum(r.frames for _, r in keep)
+    summary.idle_dropped = sum(r.idle_dropped for _, r in keep)
     summary.backend = next((r.backend for _, r in keep if r.backend), "")
     if opts.out.exists():
         from lerobot.datasets import LeRobotDatasetMetadata  # optional extra, loaded by the merge already

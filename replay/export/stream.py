@@ -25,10 +25,11 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import mujoco
+import numpy as np
 
 from replay.engine import replay_states
 from replay.episode import Episode
-from replay.export.frames import INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
+from replay.export.frames import ENV_STATE, INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
 from replay.render import FastRenderer
 from scenes.extra_camera import ExtraCamera
 
@@ -40,8 +41,31 @@ class EpisodeEnd:
     """In the stream after an episode's last frame."""
 
     index: int  # position in the episodes given to `start`
-    steps: int
+    steps: int  # frames written
     variation: dict | None = None  # what its `prepare` said of it (replay/export/looks.py), if any
+    dropped: int = 0  # idle frames left out (`drop_idle`)
+
+
+# A frame is idle when its action, robot state and objects' poses are all within this of the last frame
+# kept (rad, m, quaternion components, gripper fraction): a pause, a wait for the gripper. A slow motion
+# is kept at a lower rate (its frames are kept each time it has moved this far), never dropped whole.
+IDLE_TOLERANCE = 1e-3
+IDLE_KEYS = ("action", "observation.state", ENV_STATE)
+
+
+def idle_mask(frames: Sequence[dict]) -> list[bool]:
+    """Per frame: keep it (True) or drop it as idle. The first frame is always kept."""
+    keep: list[bool] = []
+    last: dict | None = None
+    for frame in frames:
+        if last is not None and all(
+            key not in frame or float(np.max(np.abs(frame[key] - last[key]))) <= IDLE_TOLERANCE for key in IDLE_KEYS
+        ):
+            keep.append(False)
+            continue
+        keep.append(True)
+        last = frame
+    return keep
 
 
 @dataclass(frozen=True)
@@ -56,6 +80,7 @@ class _Job:
     cameras_added: tuple[ExtraCamera, ...] = ()  # put into each recorded model before rendering
     # per episode: (episode, recorded model) -> (the model to render it with, what to record of it); None: as recorded
     prepare: list[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None
+    drop_idle: bool = False  # leave out idle frames (idle_mask)
 
 
 _DONE = object()
@@ -94,8 +119,9 @@ class _RenderWorker:
         self._thread.start()
         self._ready.wait()
 
-    def episode(self, ep: Episode, model: mujoco.MjModel, channel_first: list[bool]) -> None:
-        self._jobs.put((ep, model, channel_first))
+    def episode(self, ep: Episode, model: mujoco.MjModel, channel_first: list[bool], keep: list[bool] | None = None) -> None:
+        """Render this episode's states (those `keep` marks, when given)."""
+        self._jobs.put((ep, model, channel_first, keep))
 
     def next(self) -> list:
         while True:
@@ -127,12 +153,14 @@ class _RenderWorker:
         try:
             current = model
             while (job := self._jobs.get()) is not None:
-                ep, episode_model, channel_first = job
+                ep, episode_model, channel_first, keep = job
                 try:
                     if episode_model is not current:
                         renderer.load(episode_model)
                         current = episode_model
-                    for _, data in replay_states(ep, episode_model):
+                    for k, data in replay_states(ep, episode_model):
+                        if keep is not None and not keep[k]:
+                            continue
                         images = [renderer.render(data, c, channel_first[c]) for c in range(len(self.cameras))]
                         if not self._put(images):
                             break
@@ -186,11 +214,13 @@ class FrameStream:
         objects: bool = False,
         cameras_added: Sequence[ExtraCamera] = (),
         prepare: Sequence[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None,
+        drop_idle: bool = False,
     ) -> None:
         """Begin producing: each callable loads one episode, in export order; `cameras_added` go into each one's model;
-        `prepare[i]` turns episode i's recorded model into the one it is rendered with (another look)."""
+        `prepare[i]` turns episode i's recorded model into the one it is rendered with (another look);
+        `drop_idle` leaves out idle frames (idle_mask), unrendered."""
         self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects, tuple(cameras_added),
-                         None if prepare is None else list(prepare))
+                         None if prepare is None else list(prepare), drop_idle)
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -260,13 +290,22 @@ class FrameStream:
                 model, variation = job.prepare[i](ep, model)
             if renderer is not None and (i > 0 or job.prepare is not None):
                 renderer.load(model)  # seeds move objects (and looks change them): each episode has its own model
+            arms, objects = robot_layout(ep.meta, model), object_layout(ep.meta, model) if job.objects else None
+            keep = None
+            if job.drop_idle:  # a first pass without rendering decides which frames are idle
+                # (judged with the objects' poses whether or not the dataset holds them: an object still moving is no pause)
+                judge = FrameBuilder(arms, job.action, object_layout(ep.meta, model))
+                keep = idle_mask([judge(data, ep.ctrl[k], ep.ee_target[k]) for k, data in replay_states(ep, model)])
             if worker is not None:
-                worker.episode(ep, model, job.channel_first[own:])
-            build = FrameBuilder(robot_layout(ep.meta, model), job.action,
-                                 object_layout(ep.meta, model) if job.objects else None)
+                worker.episode(ep, model, job.channel_first[own:], keep)
+            build = FrameBuilder(arms, job.action, objects)
             task = job.task(ep)
             driven = intervention_values(ep.control, ep.meta.source, ep.steps) if job.intervention else None
+            kept = 0
             for k, data in replay_states(ep, model):
+                if keep is not None and not keep[k]:
+                    continue
+                kept += 1
                 frame = build(data, ep.ctrl[k], ep.ee_target[k])
                 if driven is not None:
                     frame[INTERVENTION] = driven[k]
@@ -279,6 +318,6 @@ class FrameStream:
                 frame["task"] = task
                 if not self._put(frame):
                     return
-            if not self._put(EpisodeEnd(i, ep.steps, variation)):
+            if not self._put(EpisodeEnd(i, kept, variation, ep.steps - kept)):
                 return
         self._put(_DONE)

@@ -55,6 +55,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="leave out observation.environment_state (each task object's position and wxyz quaternion in the "
         "robot's base frame, written by default). With --append: the dataset's own features decide",
     )
+    p.add_argument(
+        "--drop-idle", action="store_true",
+        help="leave out idle frames: those whose action, robot state and objects' poses are all within 1e-3 (rad, m, "
+        "quaternion, gripper fraction) of the last frame kept, such as a person's pauses and the waits for a gripper "
+        "(a policy trained on them learns to stand still); a slow motion is kept at a lower rate",
+    )
     p.add_argument("--append", action="store_true", help="add the episodes to the existing dataset at --out")
     p.add_argument(
         "--resume", action="store_true",
@@ -102,6 +108,9 @@ def quiet_environment() -> None:
     os.environ.setdefault("HF_DATASETS_DISABLE_PROGRESS_BARS", "1")
     # ...which `datasets` then warns about each time LeRobot opens a dataset to append to.
     warnings.filterwarnings("ignore", message="Cannot enable progress bars", category=UserWarning)
+    quiet = "ignore:Cannot enable progress bars:UserWarning"  # ...and in the export's worker processes, which start anew
+    if quiet not in os.environ.get("PYTHONWARNINGS", ""):
+        os.environ["PYTHONWARNINGS"] = ",".join(w for w in (os.environ.get("PYTHONWARNINGS", ""), quiet) if w)
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 encoder: errors only, no banner per video
 
 
@@ -156,6 +165,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             add_cameras=tuple(args.camera),
             looks=_count(args.looks, "--looks", "looks"),
             variation=variation,
+            drop_idle=args.drop_idle,
         )
         if preview is not None:
             from replay.export.preview import contact_sheet
