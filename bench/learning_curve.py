@@ -6,6 +6,7 @@ Runs bench/train_eval.sh on lift from human-like sources (bench/humanlike.py: a
 person's pauses, overshoots and corrections) for
 - 10, 50 and 200 generated demos from 3 sources, and
 - 200 generated demos from 1 source,
+exported as the recipe exports, idle frames left out (a person's pauses: with them in, no run lifted the cube),
 each evaluated on seeds 1000-1049, then writes docs/learning_curve.png (success rate
 with its 95 % Wilson interval) and docs/learning_curve.json (the runs' JSON), and prints
 the JSON object of all runs on stdout. Runs already in WORK are reused. --jobs 2 trains two
@@ -28,7 +29,7 @@ RUNS = [(10, 3), (50, 3), (200, 3), (200, 1)]  # (generated demos, human-like so
 
 
 def run(demos: int, sources: int, steps: int, work: Path, workers: int | None = None) -> dict:
-    out = work / f"lift-d{demos}-s{sources}h"
+    out = work / f"lift-d{demos}-s{sources}h-idle"
     env = {**os.environ, **({"WORKERS": str(workers)} if workers else {})}
     proc = subprocess.run(
         ["bash", str(ROOT / "bench" / "train_eval.sh"), "lift", "--demos", str(demos), "--sources", str(sources),

@@ -2,7 +2,7 @@
 # The loop, measured (issue 21): a policy trained on the tool's data, evaluated on 50 new seeds.
 #
 #   bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR]
-#                       [--schedule constant|cosine] [--ensemble C] [--episodes N] [--work DIR]
+#                       [--schedule constant|cosine] [--ensemble C] [--keep-idle] [--episodes N] [--work DIR]
 #
 #   1. K source demos (seeds 0..K-1) from the task's solving script (--humanlike: the same script with a
 #      person's pauses, overshoots and corrections, bench/humanlike.py);
@@ -10,17 +10,18 @@
 #      from 2000 past 500 demos: the seeds tried never reach the evaluation's;
 #   3. `teleop export` (2 workers): robot state, the objects' poses (observation.environment_state) and the task's
 #      action mode (joint targets; ee_pose for stack, see below; --action overrides); no images
-#      (--images: front and wrist cameras at 96x96 as PNG frames);
+#      (--images: front and wrist cameras at 96x96 as PNG frames); idle frames left out (`--drop-idle`: a person's
+#      pauses, the waits for the gripper; --keep-idle keeps them);
 #   4. `lerobot-train` ACT with the hyper-parameters below, on DEVICE (cpu; cuda where there is one): a constant
 #      learning rate of 1e-4 (stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
 #      averages its chunks' predictions for each tick with weights exp(-C i), i = 0 the oldest (ACT's temporal
 #      ensembling; C = 0.01, stack 0.1);
 #   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json).
-# Prints one JSON object on stdout: task, demos, sources, humanlike, images, action, lr, schedule, ensemble, steps,
+# Prints one JSON object on stdout: task, demos, sources, humanlike, images, action, lr, schedule, ensemble, drop_idle, steps,
 # train_seconds, success_rate, ci95, failure_breakdown. Progress and the tools' logs go to stderr. Steps already done in
 # WORK are not redone (delete WORK to start over).
 set -euo pipefail
-usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--episodes N] [--work DIR]"
+usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--keep-idle] [--episodes N] [--work DIR]"
 task=${1:?$usage}
 shift
 demos=""
@@ -28,6 +29,7 @@ steps=20000
 sources=3
 humanlike=0
 images=0
+drop_idle=1
 action=""
 lr=""
 schedule=""
@@ -41,6 +43,7 @@ while [ $# -gt 0 ]; do
         --sources) sources=${2:?$usage}; shift 2 ;;
         --humanlike) humanlike=1; shift ;;
         --images) images=1; shift ;;
+        --keep-idle) drop_idle=0; shift ;;
         --action) action=${2:?$usage}; shift 2 ;;
         --lr) lr=${2:?$usage}; shift 2 ;;
         --schedule) schedule=${2:?$usage}; shift 2 ;;
@@ -79,7 +82,7 @@ done
 gen_seed=$(( demos > 500 ? (episodes > 1000 ? 1000 + episodes : 2000) : 100 ))
 root=$(cd "$(dirname "$0")/.." && pwd)
 [ -f "$root/scenes/scripts/$script" ] || { echo "train_eval.sh: no solving script scenes/scripts/$script for task $task" >&2; exit 2; }
-work=${work:-$root/out/e2e/$task-d$demos-s$sources$([ $humanlike = 1 ] && echo h)$([ $images = 1 ] && echo i)}
+work=${work:-$root/out/e2e/$task-d$demos-s$sources$([ $humanlike = 1 ] && echo h)$([ $images = 1 ] && echo i)$([ $drop_idle = 0 ] && echo -keepidle)}
 device=${DEVICE:-cpu}
 python=${PYTHON:-$root/.venv/bin/python}
 teleop=${TELEOP:-$root/.venv/bin/teleop}
@@ -110,11 +113,12 @@ if [ ! -d gen ]; then
 fi
 if [ ! -d ds ]; then
     say "exporting"
+    idle=(); [ $drop_idle = 1 ] && idle=(--drop-idle)
     if [ $images = 1 ]; then
         # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
-        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras front,wrist --image-size 96x96 --no-video --workers 2 >&2
+        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras front,wrist --image-size 96x96 --no-video --workers 2 "${idle[@]}" >&2
     else
-        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras none --workers 2 >&2
+        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras none --workers 2 "${idle[@]}" >&2
     fi
 fi
 if [ ! -f train_seconds ]; then
@@ -156,13 +160,13 @@ if [ ! -f eval.json ]; then
         --device "$device" --json > eval.json.tmp
     mv eval.json.tmp eval.json
 fi
-"$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$action" "$lr" "$schedule" "$ensemble" "$steps" "$(cat train_seconds)" <<'EOF'
+"$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$action" "$lr" "$schedule" "$ensemble" "$drop_idle" "$steps" "$(cat train_seconds)" <<'EOF'
 import json, sys
-task, demos, sources, humanlike, images, action, lr, schedule, ensemble, steps, seconds = sys.argv[1:]
+task, demos, sources, humanlike, images, action, lr, schedule, ensemble, drop_idle, steps, seconds = sys.argv[1:]
 report = json.load(open("eval.json"))
 print(json.dumps({
     "task": task, "demos": int(demos), "sources": int(sources), "humanlike": humanlike == "1", "images": images == "1",
-    "action": action, "lr": float(lr), "schedule": schedule, "ensemble": float(ensemble), "steps": int(steps), "train_seconds": int(seconds), "success_rate": report["success_rate"], "ci95": report["ci95"],
+    "action": action, "lr": float(lr), "schedule": schedule, "ensemble": float(ensemble), "drop_idle": drop_idle == "1", "steps": int(steps), "train_seconds": int(seconds), "success_rate": report["success_rate"], "ci95": report["ci95"],
     "failure_breakdown": report.get("failure_breakdown", {}),
 }))
 EOF

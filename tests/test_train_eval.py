@@ -50,11 +50,19 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
     assert report["lr"] == 3e-4 and report["schedule"] == "cosine"
     trained = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
     assert trained["scheduler"]["type"] == "cosine_decay_with_warmup" and trained["optimizer"]["lr"] == 3e-4
+    # The objects' poses are normalized like the robot state (ACT's preset leaves ENV features raw)
+    assert config["normalization_mapping"]["ENV"] == "MEAN_STD"
+    # Idle frames left out: the dataset holds fewer frames than the generated episodes have steps
+    assert report["drop_idle"] is True
+    from replay import load_episode
+
+    steps = sum(load_episode(p).steps for p in (work / "gen").glob("*.mcap"))
+    assert 0 < info["total_frames"] < steps, (info["total_frames"], steps)
 
 
 @pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"],
                                   ["lift", "--schedule", "linear"], ["lift", "--lr", "fast"], ["lift", "--demos", "0"],
-                                  ["lift", "--ensemble", "x"]])
+                                  ["lift", "--ensemble", "x"], ["lift", "--drop-idle"]])
 def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
     proc = subprocess.run(["bash", str(SCRIPT), *args, "--work", str(tmp_path / "w")], capture_output=True, text=True,
                           timeout=60, env=_env())
