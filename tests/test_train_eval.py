@@ -46,6 +46,7 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
     config = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
     assert config["temporal_ensemble_coeff"] == 0.1 and config["n_action_steps"] == 1  # stack's: older count more
     assert report["ensemble"] == 0.1
+    assert config["dropout"] == 0.0 and report["dropout"] == 0.0  # the recipe trains without dropout
     # stack's rate: 3e-4 falling on a cosine, as the report says
     assert report["lr"] == 3e-4 and report["schedule"] == "cosine"
     trained = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
@@ -62,7 +63,7 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
 
 @pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"],
                                   ["lift", "--schedule", "linear"], ["lift", "--lr", "fast"], ["lift", "--demos", "0"],
-                                  ["lift", "--ensemble", "x"], ["lift", "--drop-idle"]])
+                                  ["lift", "--ensemble", "x"], ["lift", "--drop-idle"], ["lift", "--dropout", "1.5"]])
 def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
     proc = subprocess.run(["bash", str(SCRIPT), *args, "--work", str(tmp_path / "w")], capture_output=True, text=True,
                           timeout=60, env=_env())
