@@ -122,12 +122,9 @@ fi
 if [ ! -d ds ]; then
     say "exporting"
     idle=(); [ $drop_idle = 1 ] && idle=(--drop-idle)
-    if [ $images = 1 ]; then
-        # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
-        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras front,wrist --image-size 96x96 --no-video --workers 2 "${idle[@]}" >&2
-    else
-        "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" --cameras none --workers 2 "${idle[@]}" >&2
-    fi
+    # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
+    view=(--cameras none); [ $images = 1 ] && view=(--cameras front,wrist --image-size 96x96 --no-video)
+    "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" "${view[@]}" --workers 2 "${idle[@]}" >&2
 fi
 if [ ! -f train_seconds ]; then
     say "training ACT for $steps steps on $device"
