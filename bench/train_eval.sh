@@ -6,20 +6,20 @@
 #
 #   1. K source demos (seeds 0..K-1) from the task's solving script (--humanlike: the same script with a
 #      person's pauses, overshoots and corrections, bench/humanlike.py);
-#   2. `teleop generate` N demos from them (2 local workers; default 200, stack 2,000), on seeds from 100, or
+#   2. `teleop generate` N demos from them (2 local workers; default 200, pick_place and stack 2,000), on seeds from 100, or
 #      from 2000 past 500 demos: the seeds tried never reach the evaluation's;
 #   3. `teleop export` (2 workers): robot state, the objects' poses (observation.environment_state) and the task's
-#      action mode (joint targets; ee_pose for stack, see below; --action overrides); no images
+#      action mode (joint targets; ee_pose for pick_place and stack, see below; --action overrides); no images
 #      (--images: front and wrist cameras at 96x96 as PNG frames); idle frames left out (`--drop-idle`: a person's
 #      pauses, the waits for the gripper; --keep-idle keeps them);
 #   4. `lerobot-train` ACT with the hyper-parameters below, on DEVICE (cpu; cuda where there is one): a constant
-#      learning rate of 1e-4 (stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
+#      learning rate of 1e-4 (pick_place, stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
 #      averages its chunks' predictions for each tick with weights exp(-C i), i = 0 the oldest (ACT's temporal
-#      ensembling; C = 0.01, stack 0.1); 18,000 steps; dropout P in the transformer (default none, see below);
+#      ensembling; C = 0.01, pick_place and stack 0.1); 18,000 steps; dropout P in the transformer (default none, see below);
 #   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json).
 # Prints one JSON object on stdout: task, demos, sources, humanlike, images, action, lr, schedule, ensemble, dropout, drop_idle, steps,
 # train_seconds, success_rate, ci95, failure_breakdown. Progress and the tools' logs go to stderr. Steps already done in
-# WORK are not redone (delete WORK to start over).
+# WORK with the same settings are not redone; a step whose settings changed is redone, with every step after it.
 set -euo pipefail
 usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N] [--work DIR]"
 task=${1:?$usage}
@@ -70,10 +70,12 @@ esac
 # No dropout (ACT's preset has 0.1): 20,000 steps see each of stack's 2,000 demos' frames under 3 times, so the model
 # underfits rather than overfits; with 0.1 it set the red cube down 1-4 cm off the blue one (loss 0.028 at the end,
 # success 0.52), without it the loss reached 0.010 and the success 0.98, and a step costs a third less compute.
+# pick_place learns the same way: lift's settings (joint targets, 200 demos, 1e-4, C = 0.01) gave 0.38 without
+# dropout (23 passes over each frame; 15 timeouts, 13 still holding the cube at the end), stack's gave 0.98.
 # 18,000 steps keep a training under 30 min on 2 cores in the machine's slow state (the data workers are then the
 # bottleneck: ~10.6 steps/s, against 14-15 on its faster days).
 case "$task" in  # the task's defaults, for what the options leave unset
-    stack) defaults=(ee_pose 2000 3e-4 cosine 0.1) ;;
+    stack|pick_place) defaults=(ee_pose 2000 3e-4 cosine 0.1) ;;
     *) defaults=(joint 200 1e-4 constant 0.01) ;;
 esac
 action=${action:-${defaults[0]}} demos=${demos:-${defaults[1]}} lr=${lr:-${defaults[2]}}
@@ -100,6 +102,25 @@ mkdir -p "$work"
 work=$(cd "$work" && pwd)  # absolute: lerobot-train is handed $work/ds from inside $work
 cd "$work"
 say() { echo "train_eval.sh [$task]: $*" >&2; }
+# What each step's result depends on, kept beside it in WORK/settings/STEP: a rerun in the same WORK with other
+# settings redoes the first step they touch and every step after it (a step from before these files is redone too).
+keys=("task=$task sources=$sources humanlike=$humanlike")
+keys+=("${keys[0]} demos=$demos seed=$gen_seed")
+keys+=("${keys[1]} action=$action images=$images drop_idle=$drop_idle")
+keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64}")
+keys+=("${keys[3]} episodes=$episodes")
+outputs=(src gen ds train_seconds eval.json)
+stale=0
+for i in "${!outputs[@]}"; do
+    name=${outputs[$i]%.json}; name=${name%_seconds}
+    if [ $stale = 1 ] || { [ -e "${outputs[$i]}" ] && [ "$(cat "settings/$name" 2>/dev/null)" != "${keys[$i]}" ]; }; then
+        [ -e "${outputs[$i]}" ] && say "redoing $name: its settings changed"
+        rm -rf "${outputs[$i]}" "settings/$name"
+        stale=1
+    fi
+done
+mkdir -p settings
+done_step() { echo "${keys[$1]}" > "settings/$2"; }
 
 if [ ! -d src ]; then
     say "$sources source demos$([ $humanlike = 1 ] && echo ' (human-like)')"
@@ -113,11 +134,13 @@ if [ ! -d src ]; then
         "$teleop" run --scene "$task" --device "script:$src_script" --seed "$s" --record src.tmp >&2
     done
     mv src.tmp src
+    done_step 0 src
 fi
 if [ ! -d gen ]; then
     say "generating $demos demos"
     "$teleop" generate src --out gen.tmp --num "$demos" --seed "$gen_seed" --workers 2 >&2
     mv gen.tmp gen
+    done_step 1 gen
 fi
 if [ ! -d ds ]; then
     say "exporting"
@@ -125,6 +148,7 @@ if [ ! -d ds ]; then
     # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
     view=(--cameras none); [ $images = 1 ] && view=(--cameras front,wrist --image-size 96x96 --no-video)
     "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" "${view[@]}" --workers 2 "${idle[@]}" >&2
+    done_step 2 ds
 fi
 if [ ! -f train_seconds ]; then
     say "training ACT for $steps steps on $device"
@@ -158,12 +182,17 @@ if [ ! -f train_seconds ]; then
         | grep --line-buffered -v "^Training:" >&2 || true
     [ -d "$work/train/checkpoints/last/pretrained_model" ] || { echo "train_eval.sh: lerobot-train made no checkpoint" >&2; exit 1; }
     echo $(( $(date +%s) - t0 )) > train_seconds
+    done_step 3 train
 fi
 if [ ! -f eval.json ]; then
     say "evaluating on seeds 1000-$((999 + episodes))"
+    # One torch thread here too: two evaluations side by side (bench/learning_curve.py --jobs 2) each took
+    # over 5 min with the default threads, against 50 s with one
+    OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} \
     "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --episodes "$episodes" --seed 1000 \
         --device "$device" --json > eval.json.tmp
     mv eval.json.tmp eval.json
+    done_step 4 eval
 fi
 "$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$action" "$lr" "$schedule" "$ensemble" "$dropout" "$drop_idle" "$steps" "$(cat train_seconds)" <<'EOF'
 import json, sys

@@ -24,17 +24,21 @@ def _env() -> dict[str, str]:
             "LEROBOT_TRAIN": str(bindir / "lerobot-train"), "WORKERS": "0", "HF_HUB_OFFLINE": "1"}
 
 
-def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
-    work = tmp_path / "stack"
-    proc = subprocess.run(  # --work relative to where it is run from, as a user types it
-        ["bash", str(SCRIPT), "stack", "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "2", "--work", "stack"],
-        capture_output=True, text=True, timeout=900, env=_env(), cwd=tmp_path,
-    )
+def _run(cwd: Path, *args: str) -> tuple[dict, str]:
+    proc = subprocess.run(["bash", str(SCRIPT), *args], capture_output=True, text=True, timeout=900, env=_env(), cwd=cwd)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == 1, proc.stdout  # one JSON object; progress went to stderr
-    report = json.loads(lines[0])
-    assert report["task"] == "stack" and report["demos"] == 2 and report["steps"] == 2
+    return json.loads(lines[0]), proc.stderr
+
+
+@pytest.mark.parametrize("task, second_object", [("stack", "cube_base"), ("pick_place", "bin")])
+def test_the_recipe_runs_end_to_end_with_hand_pose_actions(tmp_path, task, second_object):
+    """stack and pick_place share their defaults: hand targets, 3e-4 on a cosine, C = 0.1, no dropout."""
+    work = tmp_path / task
+    # --work relative to where it is run from, as a user types it
+    report, _ = _run(tmp_path, task, "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "2", "--work", task)
+    assert report["task"] == task and report["demos"] == 2 and report["steps"] == 2
     assert report["action"] == "ee_pose"  # the task's default: a hand target, not joint targets
     assert 0.0 <= report["success_rate"] <= 1.0 and report["ci95"][0] <= report["success_rate"] <= report["ci95"][1]
     assert report["train_seconds"] >= 0
@@ -42,12 +46,12 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
     assert len(evaluated["per_episode"]) == 2 and evaluated["action"] == "ee_pose"
     info = json.loads((work / "ds" / "meta" / "info.json").read_text())
     assert info["features"]["action"]["names"][:4] == ["x", "y", "z", "qw"]
-    assert info["features"]["observation.environment_state"]["names"][7] == "cube_base.x"
+    assert info["features"]["observation.environment_state"]["names"][7] == f"{second_object}.x"
     config = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
-    assert config["temporal_ensemble_coeff"] == 0.1 and config["n_action_steps"] == 1  # stack's: older count more
+    assert config["temporal_ensemble_coeff"] == 0.1 and config["n_action_steps"] == 1  # older predictions count more
     assert report["ensemble"] == 0.1
     assert config["dropout"] == 0.0 and report["dropout"] == 0.0  # the recipe trains without dropout
-    # stack's rate: 3e-4 falling on a cosine, as the report says
+    # 3e-4 falling on a cosine, as the report says
     assert report["lr"] == 3e-4 and report["schedule"] == "cosine"
     trained = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
     assert trained["scheduler"]["type"] == "cosine_decay_with_warmup" and trained["optimizer"]["lr"] == 3e-4
@@ -59,6 +63,20 @@ def test_the_recipe_runs_stack_end_to_end_with_hand_pose_actions(tmp_path):
 
     steps = sum(load_episode(p).steps for p in (work / "gen").glob("*.mcap"))
     assert 0 < info["total_frames"] < steps, (info["total_frames"], steps)
+    if task != "stack":
+        return
+    # A rerun in the same WORK redoes the first step whose settings changed and every step after it, no other:
+    # more episodes evaluate the same checkpoint again, more steps train again
+    weights = work / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors"
+    trained_at = weights.stat().st_mtime_ns
+    generated = sorted(p.name for p in (work / "gen").glob("*.mcap"))
+    report, log = _run(tmp_path, task, "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "3", "--work", task)
+    assert "redoing eval" in log and "redoing train" not in log and weights.stat().st_mtime_ns == trained_at
+    assert len(json.loads((work / "eval.json").read_text())["per_episode"]) == 3
+    report, log = _run(tmp_path, task, "--demos", "2", "--sources", "1", "--steps", "3", "--episodes", "3", "--work", task)
+    assert "redoing train" in log and "redoing ds" not in log and report["steps"] == 3
+    trained = json.loads((weights.parent / "train_config.json").read_text())
+    assert trained["steps"] == 3 and sorted(p.name for p in (work / "gen").glob("*.mcap")) == generated
 
 
 @pytest.mark.parametrize("args", [["lift", "--action", "cartesian"], ["no_such_task"], ["lift", "--bogus"],
@@ -69,3 +87,18 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
                           timeout=60, env=_env())
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert proc.stdout == "" and len(proc.stderr.strip().splitlines()) == 1 and "train_eval.sh" in proc.stderr
+
+
+def test_the_image_recipe_trains_on_both_cameras_and_evaluates_through_them(tmp_path):
+    """--images (issue 21's item 4, run on CUDA by the bench): front and wrist at 96x96, at toy size on the CPU."""
+    report, _ = _run(tmp_path, "lift", "--images", "--demos", "2", "--sources", "1", "--steps", "2", "--episodes", "1",
+                     "--work", "lift")
+    assert report["images"] is True and report["task"] == "lift"
+    work = tmp_path / "lift"
+    info = json.loads((work / "ds" / "meta" / "info.json").read_text())
+    for camera in ("front", "wrist"):
+        assert info["features"][f"observation.images.{camera}"]["shape"][:2] == [96, 96]
+    config = json.loads((work / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert {"observation.images.front", "observation.images.wrist"} <= set(config["input_features"])
+    evaluated = json.loads((work / "eval.json").read_text())
+    assert evaluated["cameras"] == ["front", "wrist"] and len(evaluated["per_episode"]) == 1
