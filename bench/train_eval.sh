@@ -107,7 +107,7 @@ say() { echo "train_eval.sh [$task]: $*" >&2; }
 keys=("task=$task sources=$sources humanlike=$humanlike")
 keys+=("${keys[0]} demos=$demos seed=$gen_seed")
 keys+=("${keys[1]} action=$action images=$images drop_idle=$drop_idle")
-keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64}")
+keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64} device=$device")
 keys+=("${keys[3]} episodes=$episodes")
 outputs=(src gen ds train_seconds eval.json)
 stale=0
