@@ -109,18 +109,18 @@ keys+=("${keys[0]} demos=$demos seed=$gen_seed")
 keys+=("${keys[1]} action=$action images=$images drop_idle=$drop_idle")
 keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64} device=$device")
 keys+=("${keys[3]} episodes=$episodes")
+steps_done=(src gen ds train eval)  # each step's name, and what it leaves in WORK when it is done:
 outputs=(src gen ds train_seconds eval.json)
 stale=0
 for i in "${!outputs[@]}"; do
-    name=${outputs[$i]%.json}; name=${name%_seconds}
-    if [ $stale = 1 ] || { [ -e "${outputs[$i]}" ] && [ "$(cat "settings/$name" 2>/dev/null)" != "${keys[$i]}" ]; }; then
-        [ -e "${outputs[$i]}" ] && say "redoing $name: its settings changed"
-        rm -rf "${outputs[$i]}" "settings/$name"
+    if [ $stale = 1 ] || { [ -e "${outputs[$i]}" ] && [ "$(cat "settings/${steps_done[$i]}" 2>/dev/null)" != "${keys[$i]}" ]; }; then
+        [ -e "${outputs[$i]}" ] && say "redoing ${steps_done[$i]}: its settings changed"
+        rm -rf "${outputs[$i]}" "settings/${steps_done[$i]}"
         stale=1
     fi
 done
 mkdir -p settings
-done_step() { echo "${keys[$1]}" > "settings/$2"; }
+done_step() { echo "${keys[$1]}" > "settings/${steps_done[$1]}"; }
 
 if [ ! -d src ]; then
     say "$sources source demos$([ $humanlike = 1 ] && echo ' (human-like)')"
@@ -134,13 +134,13 @@ if [ ! -d src ]; then
         "$teleop" run --scene "$task" --device "script:$src_script" --seed "$s" --record src.tmp >&2
     done
     mv src.tmp src
-    done_step 0 src
+    done_step 0
 fi
 if [ ! -d gen ]; then
     say "generating $demos demos"
     "$teleop" generate src --out gen.tmp --num "$demos" --seed "$gen_seed" --workers 2 >&2
     mv gen.tmp gen
-    done_step 1 gen
+    done_step 1
 fi
 if [ ! -d ds ]; then
     say "exporting"
@@ -148,7 +148,7 @@ if [ ! -d ds ]; then
     # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
     view=(--cameras none); [ $images = 1 ] && view=(--cameras front,wrist --image-size 96x96 --no-video)
     "$teleop" export gen --out ds --repo-id "local/$task" --action "$action" "${view[@]}" --workers 2 "${idle[@]}" >&2
-    done_step 2 ds
+    done_step 2
 fi
 if [ ! -f train_seconds ]; then
     say "training ACT for $steps steps on $device"
@@ -182,7 +182,7 @@ if [ ! -f train_seconds ]; then
         | grep --line-buffered -v "^Training:" >&2 || true
     [ -d "$work/train/checkpoints/last/pretrained_model" ] || { echo "train_eval.sh: lerobot-train made no checkpoint" >&2; exit 1; }
     echo $(( $(date +%s) - t0 )) > train_seconds
-    done_step 3 train
+    done_step 3
 fi
 if [ ! -f eval.json ]; then
     say "evaluating on seeds 1000-$((999 + episodes))"
@@ -192,7 +192,7 @@ if [ ! -f eval.json ]; then
     "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --episodes "$episodes" --seed 1000 \
         --device "$device" --json > eval.json.tmp
     mv eval.json.tmp eval.json
-    done_step 4 eval
+    done_step 4
 fi
 "$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$action" "$lr" "$schedule" "$ensemble" "$dropout" "$drop_idle" "$steps" "$(cat train_seconds)" <<'EOF'
 import json, sys
