@@ -3,6 +3,8 @@
 #   ./run.sh [FLAGS]    the browser teleop session (Panda, lift), recording into ./episodes; FLAGS go to `teleop serve`
 #   ./run.sh test       installs everything (LeRobot, browser, X server) and runs the whole test suite
 #   ./run.sh ARGS...    any other `teleop` command, e.g. ./run.sh run --device script:scenes/scripts/lift_pick.json
+# Each installs only what the venv ($TELEOP_VENV, default .venv) lacks; pip's output goes to $VENV/install.log,
+# shown only when an install fails.
 set -euo pipefail
 cd "$(dirname "$0")"
 VENV=${TELEOP_VENV:-.venv}
@@ -20,23 +22,47 @@ find_python() {
     return 1
 }
 
+# The install stamp: $VENV/.installed-<pyproject hash>-<extras, comma list>. pip installs add up, so the
+# venv holds every extra of every stamp with this pyproject's hash; a request for a subset needs no install.
+has_extras() {  # has_extras HASH EXTRAS: 0 when the stamps of HASH together hold every extra asked for
+    local hash=$1 want=$2 have="" stamp extra
+    for stamp in "$VENV"/.installed-"$hash"-*; do
+        [ -f "$stamp" ] || continue
+        have="$have,${stamp##*/.installed-"$hash"-},"
+    done
+    [ -n "$have" ] || return 1
+    for extra in ${want//,/ }; do
+        case "$have" in *",$extra,"*) ;; *) return 1 ;; esac
+    done
+    return 0
+}
+
+quiet_install() {  # quiet_install ARGS...: pip into $VENV, its output kept in $VENV/install.log and shown only on failure
+    local log="$VENV/install.log"
+    if ! "$VENV/bin/python" -m pip "$@" >>"$log" 2>&1; then
+        echo "run.sh: pip install into $VENV failed; the end of $log:" >&2
+        tail -n 60 "$log" >&2
+        exit 1
+    fi
+}
+
 make_venv() {  # make_venv EXTRAS
-    local extras=$1 stamp
+    local extras=$1 hash
     if [ ! -x "$VENV/bin/python" ]; then
         local py
         py=$(find_python) || { echo "run.sh: Python 3.12 or newer is needed (LeRobot 0.6 requires it); install python3.12 and try again" >&2; exit 2; }
         "$py" -m venv "$VENV"
-        "$VENV/bin/python" -m pip install -q --upgrade pip
+        quiet_install install --upgrade pip
     fi
-    stamp="$VENV/.installed-$(cat pyproject.toml | sha1sum | cut -c1-12)-$extras"
-    if [ ! -f "$stamp" ]; then
-        echo "run.sh: installing the project into $VENV (${extras:-core})..." >&2
+    hash=$(sha1sum <pyproject.toml | cut -c1-12)
+    if ! has_extras "$hash" "$extras"; then
+        echo "run.sh: installing the project into $VENV (${extras:-core}; pip's output in $VENV/install.log)..." >&2
         if [ -n "$extras" ]; then
-            "$VENV/bin/python" -m pip install -q -e ".[$extras]"
+            quiet_install install -e ".[$extras]"
         else
-            "$VENV/bin/python" -m pip install -q -e .
+            quiet_install install -e .
         fi
-        touch "$stamp"
+        touch "$VENV/.installed-$hash-$extras"
     fi
 }
 
@@ -67,8 +93,8 @@ robomimic_for_tests() {
     # its loader needs torch, h5py and numpy, which the lerobot extra brings, and these three.
     if ! "$VENV/bin/python" -c 'import importlib.metadata as m, sys; [m.version(d) for d in ("termcolor", "tensorboardX", "tqdm")]; sys.exit(m.version("robomimic") != "0.3.0")' 2>/dev/null; then
         echo "run.sh: installing robomimic 0.3.0 (without its dependencies) into $VENV..." >&2
-        "$VENV/bin/python" -m pip install -q termcolor tensorboardX tqdm
-        "$VENV/bin/python" -m pip install -q --no-deps robomimic==0.3.0
+        quiet_install install termcolor tensorboardX tqdm
+        quiet_install install --no-deps robomimic==0.3.0
     fi
 }
 

@@ -1,7 +1,7 @@
 """Camera framing: how many pixels across the smallest task object is at 96x96, over every task and robot.
 
 Figures (`measure`), each task (built-in and library) built with each robot it fits,
-seed 0, objects at their start and arms at home (scenes.camera_figure):
+seed 0, objects at their start and arms at home (scenes.cameras.figure):
   camera_front_object_px_at_96     the minimum over tasks and robots of the smallest object's projected
                                    width (px) in `front` at 96x96; goal >= 6
   camera_overhead_object_px_at_96  the same for `overhead`; goal >= 8
@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import sys
 
-from scenes.build import build_scene
-from scenes.camera_figure import camera_figures
-from scenes.tasks import TASKS, find_task, library_tasks
+from scenes.assembly.build import build_scene
+from scenes.cameras.figure import camera_figures
+from scenes.tasks.registry import TASKS, find_task, library_tasks
 
 CAMERAS = ("front", "overhead", "room")
 

@@ -115,7 +115,7 @@ def ik_max_diff_vs_mink(n: int, seed: int = 0) -> float:
     from teleop.control.ik import SOLVER_DAMPING
     from teleop.control.session import Session
 
-    ik = Session("lift", "panda", seed=0, control_hz=20.0).arms[0].ik
+    ik = Session("lift", "panda", seed=0, control_hz=20.0).controller.arms[0].ik
     configuration, site = ik.configuration, ik.arm.ee_site
     rng = np.random.default_rng(seed)
     lo, hi = ik.model.jnt_range[: ik.model.nq].T
@@ -138,7 +138,7 @@ def measure(quick: bool = False) -> dict[str, float]:
     n = 300 if quick else 2000
     session = Session("lift", "panda", seed=0, control_hz=20.0)
     assert session.substeps == 25 and abs(session.timestep - 0.002) < 1e-12
-    arm = session.arms[0]
+    arm = session.controller.arms[0]
     center = arm.target_pos.copy()
     quat = arm.target_quat.copy()
     robosuite = _start_robosuite()
@@ -171,20 +171,20 @@ def measure(quick: bool = False) -> dict[str, float]:
         return ok
 
     arm.ik.solve = timed_solve  # this session only: the instance attribute shadows the method
-    scratch = mujoco.MjData(session.model)
+    scratch = mujoco.MjData(session.controller.model)
     step_ms, physics_ms, overhead_us, robosuite_ms = [], [], [], []
     try:
         for i in range(n):
             if robosuite is not None and i % BLOCK == 0:
                 robosuite_ms.extend(robosuite.steps(ROBOSUITE_BLOCK))
-            mujoco.mj_copyData(scratch, session.model, session.data)
+            mujoco.mj_copyData(scratch, session.controller.model, session.controller.data)
             command = Command(target_pos=center + _circle(i), target_quat=quat)
             t0 = time.perf_counter()
             session.step([command])
             step = (time.perf_counter() - t0) * 1e3
-            scratch.ctrl[:] = session.data.ctrl
+            scratch.ctrl[:] = session.controller.data.ctrl
             t0 = time.perf_counter()
-            mujoco.mj_step(session.model, scratch, nstep=session.substeps)
+            mujoco.mj_step(session.controller.model, scratch, nstep=session.substeps)
             physics = (time.perf_counter() - t0) * 1e3
             step_ms.append(step)
             physics_ms.append(physics)

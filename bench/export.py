@@ -13,7 +13,7 @@ Figures (`measure`), on real recordings (lift, Panda, 30 Hz, the scripted pick):
                         default codec), finalize) in dataset frames per second of wall time,
                         best of 2 runs
   export_frames_per_s_varied  the same episodes with --looks 2 --vary looks (each rendered twice, each time with
-                        its own lights, colours, textures and camera jitter: scenes/vary_looks.py), in dataset
+                        its own lights, colours, textures and camera jitter: scenes/vary/looks.py), in dataset
                         frames per second; runs alternate with the plain export's, best of as many
   export_frames_per_s_av1  the same with --vcodec av1 (LeRobot's default codec), one run
   export_frames_per_s_workers  the same episodes with --workers 2 (shards in spawned processes,
@@ -80,9 +80,9 @@ def export_rate(paths: list[Path], out: Path, vcodec: str | None = None, workers
 
 def export_run(paths: list[Path], out: Path, vcodec: str | None = None, workers: int = 1, looks: int = 1) -> tuple[float, float]:
     """(frames/s as the export's summary times it, wall seconds of the whole call); looks > 1: that many varied looks."""
-    from replay.export.dataset import ExportOptions
+    from replay.export import ExportOptions
     from replay.export import export_dataset
-    from scenes.variation import GROUPS, Variation
+    from scenes.vary.variation import GROUPS, Variation
 
     opts = ExportOptions(
         out=out, repo_id="bench/export", cameras=["front", "wrist"], image_size=SIZE, vcodec=vcodec, progress=False,

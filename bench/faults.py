@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from tests.procs import alive as _alive, children_of as _children
+from tests.support import alive as _alive, children_of as _children
 
 ROOT = Path(__file__).resolve().parent.parent
 TRIALS = 3

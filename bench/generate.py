@@ -28,7 +28,7 @@ FIRST_NEW_SEED = 1000
 def record_sources(task: str, directory: Path, seeds=(0, 1, 2)) -> list[Path]:
     """3 scripted demos of `task` with its first robot and the script its task file names, as a user would record them."""
     import teleop
-    from scenes.tasks import find_task
+    from scenes.tasks.registry import find_task
 
     spec = find_task(task)
     robot = spec.robots[0]

@@ -5,7 +5,7 @@
 A scripted source goes straight to each target at one speed. A person holding keys
 does not: they pause to look, go slower, overshoot a target by a centimetre or
 three and come back, and hesitate before closing the gripper. This rewrites a
-script (README "Scripts") step by step, seeded:
+script (docs/recording.md, "Scripts") step by step, seeded:
 
 - a pause of 0.2-0.8 s before a step, half the time;
 - every step 1.0-1.6x as long;
@@ -16,6 +16,10 @@ script (README "Scripts") step by step, seeded:
 
 The result still solves the task (the corrections end where the original steps end),
 which `bench/train_eval.sh --humanlike` checks by recording it.
+
+A two-arm script (steps with `arm`) is rewritten for each arm with a draw of its own
+(seeded by the seed and the arm), so the two hands pause, miss and correct at different
+times; a step without an arm (a pause) belongs to arm 0. A one-arm script is rewritten as before.
 """
 
 from __future__ import annotations
@@ -36,17 +40,20 @@ def _off_target(rng: np.random.Generator) -> np.ndarray:
 
 
 def humanlike(steps: list[dict], seed: int) -> list[dict]:
-    """The script's steps with a person's pauses, overshoots and corrections (seeded)."""
-    rng = np.random.default_rng(seed)
+    """The script's steps with a person's pauses, overshoots and corrections (seeded; per arm for two arms)."""
+    arms = sorted({int(step.get("arm", 0)) for step in steps})
+    rngs = {arm: np.random.default_rng(seed if len(arms) == 1 else [seed, arm]) for arm in arms}
     out: list[dict] = []
     for step in steps:
+        rng = rngs[int(step.get("arm", 0))]
+        arm = {"arm": step["arm"]} if "arm" in step else {}  # a pause or a correction stays with its arm
         if rng.random() < 0.5:
-            out.append({"duration": round(float(rng.uniform(0.2, 0.8)), 3)})
+            out.append({"duration": round(float(rng.uniform(0.2, 0.8)), 3), **arm})
         step = dict(step)
         duration = float(step.get("duration", 0.0)) * float(rng.uniform(1.0, 1.6))
         correction = round(float(rng.uniform(0.4, 0.8)), 3)
         if step.get("gripper") == "close" and not any(k in step for k in ("move", "to", "to_body", "rotate")):
-            out.append({"duration": round(float(rng.uniform(0.3, 0.7)), 3)})
+            out.append({"duration": round(float(rng.uniform(0.3, 0.7)), 3), **arm})
         if "to_body" in step or "to" in step:
             miss = _off_target(rng)
             first = dict(step, duration=round(duration, 3))
@@ -60,7 +67,7 @@ def humanlike(steps: list[dict], seed: int) -> list[dict]:
             move = np.asarray(step["move"], dtype=float)
             extra = move * float(rng.uniform(0.1, 0.3))
             out += [dict(step, move=[round(float(v), 4) for v in move + extra], duration=round(duration, 3)),
-                    {"duration": correction, "move": [round(float(v), 4) for v in -extra]}]
+                    {"duration": correction, "move": [round(float(v), 4) for v in -extra], **arm}]
         else:
             out.append(dict(step, duration=round(duration, 3)))
     return out

@@ -1,4 +1,4 @@
-"""Recording and replay speed, plus a small contact-rich scene to record without a robot.
+"""Recording and replay speed.
 
 Figures (`measure`), on the real session (lift, Panda, 25 substeps of 2 ms, IK each tick,
 recording MCAP and HDF5):
@@ -21,143 +21,20 @@ recording MCAP and HDF5):
   replay_states_per_s    state mode, poses only (mj_setState + mj_kinematics per state)
   replay_forward_states_per_s  state mode with mj_forward per state
   resim_realtime_factor  action replay with bit-for-bit verification: sim s / wall s
-
-The pusher scene (a slider pushing a pile of free boxes) is what the recorder's
-tests use: contacts appear, move and vanish, so inexact replay shows at once.
 """
 
 from __future__ import annotations
 
-import platform
 import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable
-from datetime import datetime, timezone
 from pathlib import Path
 
-import mujoco
 import numpy as np
 
-from recorder.format import ArmMeta, EpisodeMeta
-
 SUBSTEPS = 25
-TIMESTEP = 0.002
-
-
-def pusher_xml(n_boxes: int = 9) -> str:
-    """A position-driven slider ("the arm") and a pile of free boxes on a plane."""
-    boxes = []
-    for i in range(n_boxes):
-        x = 0.25 + 0.09 * (i % 3)
-        y = -0.09 + 0.09 * ((i // 3) % 3)
-        z = 0.04 + 0.085 * (i // 9) + 0.002 * i
-        boxes.append(
-            f'<body name="box{i}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/>'
-            f'<geom type="box" size=".04 .04 .04" mass="0.2" rgba=".8 .4 .2 1"/></body>'
-        )
-    return f"""<mujoco model="pusher">
-  <compiler angle="radian"/>
-  <option timestep="{TIMESTEP}"/>
-  <worldbody>
-    <light pos="0 0 3"/>
-    <geom name="floor" type="plane" size="2 2 0.1" friction="0.9"/>
-    <body name="pusher" pos="0 0 0.05">
-      <joint name="px" type="slide" axis="1 0 0" range="-0.5 1.2" limited="true" damping="5"/>
-      <joint name="py" type="slide" axis="0 1 0" range="-0.6 0.6" limited="true" damping="5"/>
-      <geom type="box" size="0.04 0.16 0.04" mass="3"/>
-      <site name="ee" pos="0 0 0.05" euler="0 0 0.7"/>
-    </body>
-    {''.join(boxes)}
-  </worldbody>
-  <actuator>
-    <position name="ax" joint="px" kp="600" dampratio="1" ctrlrange="-0.5 1.2"/>
-    <position name="ay" joint="py" kp="600" dampratio="1" ctrlrange="-0.6 0.6"/>
-  </actuator>
-</mujoco>"""
-
-
-def episode_meta(model: mujoco.MjModel, xml: str, index: int, seed: int, substeps: int, *,
-                 scene: str = "pusher", arms: tuple[ArmMeta, ...] | None = None,
-                 assets: dict | None = None) -> EpisodeMeta:
-    """Metadata the way the session fills it, for a model built here."""
-    arms = arms or (ArmMeta(ee_site="ee", joints=("px", "py"), actuators=("ax", "ay"), home=(0.0, 0.0)),)
-    return EpisodeMeta(
-        scene=scene,
-        robot="pusher",
-        arms=arms,
-        nstate=mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION),
-        nq=model.nq,
-        nv=model.nv,
-        nu=model.nu,
-        control_hz=1.0 / (model.opt.timestep * substeps),
-        timestep=model.opt.timestep,
-        substeps=substeps,
-        seed=seed,
-        task="push the boxes",
-        model_xml=xml,
-        assets=assets or {},
-        mujoco_version=mujoco.__version__,
-        platform=platform.platform(),
-        machine=platform.machine(),
-        python_version=sys.version.split()[0],
-        start_time=datetime.now(timezone.utc).isoformat(),
-        episode_index=index,
-        source="script",
-    )
-
-
-def pusher_ctrl(k: int, seed: int, dt: float) -> np.ndarray:
-    """Scripted slider targets: sweep through the pile and back, with a seeded wobble."""
-    t = k * dt
-    phase = 0.3 * seed
-    return np.array([0.45 - 0.55 * np.cos(0.9 * t + phase), 0.25 * np.sin(1.7 * t + phase)])
-
-
-def record_pusher_episode(
-    directory: Path,
-    index: int = 0,
-    steps: int = 200,
-    formats: tuple[str, ...] = ("mcap", "hdf5"),
-    seed: int = 0,
-    substeps: int = SUBSTEPS,
-    on_step: Callable[[int, mujoco.MjData], None] | None = None,
-    success: bool = True,
-    complete: bool = True,
-) -> list[Path]:
-    """Run the pusher scene like the session does and record it; returns the files."""
-    from recorder import EpisodeWriter, StepRecord
-
-    xml = pusher_xml()
-    model = mujoco.MjModel.from_xml_string(xml)
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    site = model.site("ee").id
-    nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION)
-    writer = EpisodeWriter(directory, index, formats, episode_meta(model, xml, index, seed, substeps))
-    dt = model.opt.timestep * substeps
-    quat = np.empty(4)
-    for k in range(steps):
-        state = np.empty(nstate)
-        mujoco.mj_getState(model, data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
-        t, qpos, qvel = data.time, data.qpos.copy(), data.qvel.copy()
-        data.ctrl[:] = pusher_ctrl(k, seed, dt)
-        mujoco.mj_step(model, data, nstep=substeps)
-        mujoco.mj_kinematics(model, data)
-        mujoco.mju_mat2Quat(quat, data.site_xmat[site])
-        target = np.concatenate([data.ctrl, [0.1], quat])  # the slider cannot turn: aim at its own heading
-        pose = np.concatenate([data.site_xpos[site], quat])
-        commands = [{"source": "bench", "step": k}] if k % 10 == 0 else []
-        writer.append(StepRecord(time=t, state=state, ctrl=data.ctrl.copy(), ee_target=target[None],
-                                 ee_pose=pose[None], qpos=qpos, qvel=qvel, gripper=np.ones(1),
-                                 commands=commands, wall_time=time.time()))
-        if on_step is not None:
-            on_step(k, data)
-    return writer.close(success=success, complete=complete)
-
-
-# -- measurements -------------------------------------------------------------
+TIMESTEP = 0.002  # s: 25 x 2 ms is a 20 Hz control tick
 
 
 def _session(tmp: Path):

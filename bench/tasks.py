@@ -6,7 +6,7 @@ Figures (`measure`):
                     (1000, ...) from 3 scripted sources (seeds 0, 1, 2, the task's first robot), 2 local workers
   tasks_table       one row per task: task, instruction, generation success, episodes/min
 
-`TELEOP_BENCH_TASKS=a,b` limits the run to some tasks (the README says when a subset was run).
+`TELEOP_BENCH_TASKS=a,b` limits the run to some tasks (docs/speed.md says when a subset was run).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ GOOD = 0.8
 
 def task_names() -> list[str]:
     """The built-in tasks, then the library's; `TELEOP_BENCH_TASKS=a,b` keeps some."""
-    from scenes.tasks import BUILTIN_ORDER, library_tasks
+    from scenes.tasks.registry import BUILTIN_ORDER, library_tasks
 
     names = list(BUILTIN_ORDER) + sorted(library_tasks())
     wanted = [w for w in os.environ.get("TELEOP_BENCH_TASKS", "").split(",") if w]
@@ -33,7 +33,7 @@ def task_names() -> list[str]:
 
 def measure(quick: bool = False) -> dict:
     from bench.generate import record_sources
-    from scenes.tasks import find_task
+    from scenes.tasks.registry import find_task
     from teleop.generate.generator import GenerateOptions, generate
 
     seeds = QUICK_SEEDS if quick else SEEDS
@@ -59,7 +59,7 @@ def measure(quick: bool = False) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    """The README's table."""
+    """The table of docs/speed.md, "The task library, generated"."""
     lines = ["| task | instruction | generation success | episodes/min |", "|---|---|---|---|"]
     lines += [f"| `{r['task']}` | {r['instruction']} | {r['success']:.2f}{' (' + r['note'] + ')' if r.get('note') else ''} "
               f"| {r['episodes_per_min']:.0f} |" for r in rows]

@@ -92,6 +92,10 @@ done
 gen_seed=$(( demos > 500 ? (episodes > 1000 ? 1000 + episodes : 2000) : 100 ))
 root=$(cd "$(dirname "$0")/.." && pwd)
 [ -f "$root/scenes/scripts/$script" ] || { echo "train_eval.sh: no solving script scenes/scripts/$script for task $task" >&2; exit 2; }
+# The task file's first robot records, generates and evaluates (panda for the one-arm built-ins; bimanual for handover)
+robot=$(cd "$root" && "${PYTHON:-$root/.venv/bin/python}" -c "import sys; from scenes.tasks.registry import find_task; \
+r = find_task(sys.argv[1]).robots; print(r[0] if r else 'panda')" "$task" 2>/dev/null) \
+    || { echo "train_eval.sh: no task named $task" >&2; exit 2; }
 work=${work:-$root/out/e2e/$task-d$demos-s$sources$([ $humanlike = 1 ] && echo h)$([ $images = 1 ] && echo i)$([ $drop_idle = 0 ] && echo -keepidle)}
 device=${DEVICE:-cpu}
 python=${PYTHON:-$root/.venv/bin/python}
@@ -131,7 +135,7 @@ if [ ! -d src ]; then
             "$python" "$root/bench/humanlike.py" "$src_script" --seed "$s" > "src.tmp/script_$s.json"
             src_script="$work/src.tmp/script_$s.json"
         fi
-        "$teleop" run --scene "$task" --device "script:$src_script" --seed "$s" --record src.tmp >&2
+        "$teleop" run --scene "$task" --robot "$robot" --device "script:$src_script" --seed "$s" --record src.tmp >&2
     done
     mv src.tmp src
     done_step 0
@@ -189,7 +193,7 @@ if [ ! -f eval.json ]; then
     # One torch thread here too: two evaluations side by side (bench/learning_curve.py --jobs 2) each took
     # over 5 min with the default threads, against 50 s with one
     OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} \
-    "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --episodes "$episodes" --seed 1000 \
+    "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --robot "$robot" --episodes "$episodes" --seed 1000 \
         --device "$device" --json > eval.json.tmp
     mv eval.json.tmp eval.json
     done_step 4

@@ -55,6 +55,16 @@ class Restartable(Protocol):
 
 
 @runtime_checkable
+class SceneChecked(Protocol):
+    """A device whose input names parts of the scene (a script's bodies): checked against it before the
+    first tick, so a wrong name is one error before anything runs or is recorded, not one mid-episode."""
+
+    def check(self, view: SessionView) -> None:
+        """Raise a TeleopError (one line naming the input and the name) if the scene lacks what it names."""
+        ...
+
+
+@runtime_checkable
 class SpeedControlled(Protocol):
     """A hold-to-move device: full deflection moves the target at these speeds."""
 

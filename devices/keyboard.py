@@ -79,7 +79,7 @@ MODIFIERS = frozenset({"ctrl", "ctrl_l", "ctrl_r", "alt", "alt_l", "alt_r", "alt
 
 
 def bindings_table() -> str:
-    """The key table as aligned text (for `teleop devices` and the README)."""
+    """The key table as aligned text (for `teleop devices` and docs/session.md)."""
     rows = [(" / ".join(b.keys), b.help) for b in BINDINGS]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k.ljust(width)}  {h}" for k, h in rows)
@@ -108,6 +108,7 @@ class KeyState:
         self._presses: list[str] = []
         self._last_take = now
         self.last_event_time = 0.0  # monotonic time of the last bound key event
+        self.last_press_time = 0.0  # monotonic time a key last went down (not autorepeat, not a release)
         self.last_source: str | None = None  # the source of the newest press
 
     def press(self, name: str, t: float, source: str = LOCAL) -> None:
@@ -118,6 +119,7 @@ class KeyState:
                 return  # autorepeat while held
             holders.add(source)
             self.last_source = source
+            self.last_press_time = t
             if name in self._down:
                 return  # already held by another source
             self._down[name] = t

@@ -9,8 +9,17 @@
 
 Each step moves the arm's target from where it is at the step's start to the
 step's goal, linearly over `duration` seconds (no jumps), and rotates it by
-`rotate` (axis-angle, world frame). Goals resolve when the step begins, so
-`to_body` aims at where the body is then.
+`rotate` (axis-angle, world frame) or to `orient` (an absolute hand orientation:
+[roll, pitch, yaw] in radians about the workspace's fixed x, y, z axes, which are
+the world's; every built-in robot's hand starts at [pi, 0, 0], pointing down).
+`"align": "yaw"` with `to_body` turns the hand about the vertical to the body's
+yaw, taking the nearer of a parallel gripper's two grasps (the yaw mod pi), so an
+object placed at any yaw is grasped across the same side. Goals resolve when the
+step begins, so `to_body` aims at where the body is then.
+
+Every name a script uses (bodies, arms) is checked against the scene by `check`
+before the first tick (the episode loop calls it), so a misspelt step 5 stops the
+run before anything is recorded.
 """
 
 from __future__ import annotations
@@ -28,7 +37,8 @@ from devices.command import Command
 from devices.view import SessionView
 from scenes.errors import TeleopError
 
-STEP_KEYS = {"duration", "move", "rotate", "to", "to_body", "offset", "gripper", "arm"}
+STEP_KEYS = {"duration", "move", "rotate", "orient", "to", "to_body", "offset", "align", "gripper", "arm"}
+ALIGN = ("yaw",)  # what `align` may turn the hand to
 
 
 class ScriptError(TeleopError, ValueError):
@@ -45,6 +55,8 @@ class ScriptStep:
     offset: np.ndarray | None = None
     gripper: str | None = None
     arm: int = 0
+    orient: np.ndarray | None = None  # absolute [roll, pitch, yaw] (rad) about the workspace's axes
+    align: str | None = None  # "yaw": turn the hand to the `to_body` body's yaw (mod pi)
 
 
 def _vector(where: str, key: str, value) -> np.ndarray:
@@ -83,6 +95,14 @@ def parse_script(text: str, name: str = "script") -> list[ScriptStep]:
             raise ScriptError(f"{where}: '{targets[1]}' cannot be combined with '{targets[0]}'")
         if "offset" in step and "to_body" not in step:
             raise ScriptError(f"{where}: 'offset' needs 'to_body'")
+        align = step.get("align")
+        if align is not None and align not in ALIGN:
+            raise ScriptError(f"{where}: 'align' must be \"yaw\"")
+        if align is not None and "to_body" not in step:
+            raise ScriptError(f"{where}: 'align' needs 'to_body'")
+        turns = [k for k in ("rotate", "orient", "align") if k in step]
+        if len(turns) > 1:
+            raise ScriptError(f"{where}: '{turns[1]}' cannot be combined with '{turns[0]}'")
         to_body = step.get("to_body")
         if to_body is not None and (not isinstance(to_body, str) or not to_body):
             raise ScriptError(f"{where}: 'to_body' must be a body name")
@@ -102,6 +122,8 @@ def parse_script(text: str, name: str = "script") -> list[ScriptStep]:
                 offset=_vector(where, "offset", step["offset"]) if "offset" in step else None,
                 gripper=gripper,
                 arm=arm,
+                orient=_vector(where, "orient", step["orient"]) if "orient" in step else None,
+                align=align,
             )
         )
     return steps
@@ -128,6 +150,33 @@ def slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
         return q / np.linalg.norm(q)
     theta = math.acos(dot)
     return (math.sin((1 - s) * theta) * q0 + math.sin(s * theta) * q1) / math.sin(theta)
+
+
+def rpy_quat(rpy: np.ndarray) -> np.ndarray:
+    """wxyz quaternion of [roll, pitch, yaw] (rad) about the fixed x, y, z axes: Rz(yaw) Ry(pitch) Rx(roll)."""
+    out = np.array([1.0, 0.0, 0.0, 0.0])
+    for axis, angle in zip(np.eye(3), rpy):
+        turn = np.empty(4)
+        mujoco.mju_axisAngle2Quat(turn, axis, float(angle))
+        mujoco.mju_mulQuat(out, turn, out.copy())
+    return out
+
+
+def heading(quat: np.ndarray) -> float:
+    """Yaw (rad) of a frame's x axis about the vertical: a body's yaw, or a hand's pointing down."""
+    mat = np.empty(9)
+    mujoco.mju_quat2Mat(mat, quat)
+    return math.atan2(mat[3], mat[0])
+
+
+def turned_to_yaw(hand: np.ndarray, yaw: float, symmetry: float = math.pi) -> np.ndarray:
+    """`hand` turned about the vertical to `yaw`, or to the nearest of yaw + k * symmetry (rad): the
+    least turn that lines a gripper symmetric under `symmetry` up with it."""
+    turn = (yaw - heading(hand) + symmetry / 2) % symmetry - symmetry / 2
+    rot, out = np.empty(4), np.empty(4)
+    mujoco.mju_axisAngle2Quat(rot, np.array([0.0, 0.0, 1.0]), turn)
+    mujoco.mju_mulQuat(out, rot, hand)
+    return out
 
 
 class ScriptDevice:
@@ -165,6 +214,22 @@ class ScriptDevice:
     def duration(self) -> float:
         return sum(s.duration for s in self.steps)
 
+    def check(self, view: SessionView) -> None:
+        """Check every step against the scene before the first tick: its arm and the bodies it names.
+
+        Raises ScriptError naming the file, step and field, so a bad step 5 stops the run
+        before anything is recorded rather than when step 5 begins.
+        """
+        for i, step in enumerate(self.steps, start=1):
+            where = f"{self.path}: step {i}"
+            if step.arm >= view.n_arms:
+                raise ScriptError(f"{where}: 'arm' {step.arm} but the robot has {view.n_arms} arm(s)")
+            if step.to_body is not None:
+                try:
+                    view.body_pos(step.to_body)
+                except KeyError:
+                    raise ScriptError(f"{where}: 'to_body' names no body '{step.to_body}' in the scene") from None
+
     def _begin(self, step: ScriptStep, view: SessionView) -> None:
         if step.arm >= view.n_arms:
             raise DeviceError(f"{self.path}: step {self.index + 1}: 'arm' {step.arm} but the robot has {view.n_arms} arm(s)")
@@ -180,7 +245,11 @@ class ScriptDevice:
             except KeyError:
                 raise DeviceError(f"{self.path}: step {self.index + 1}: 'to_body' names no body '{step.to_body}'") from None
         goal_quat = quat.copy()
-        if step.rotate is not None:
+        if step.orient is not None:
+            goal_quat = rpy_quat(step.orient)
+        elif step.align == "yaw" and step.to_body is not None:
+            goal_quat = turned_to_yaw(quat, heading(view.body_quat(step.to_body)))
+        elif step.rotate is not None:
             angle = float(np.linalg.norm(step.rotate))
             if angle > 0:
                 rot = np.empty(4)

@@ -306,6 +306,8 @@ class SpaceMouseDevice:
         with self._lock:
             raw = list(self._raw.axes)
             edges, self._pending = self._pending, []
+        if not edges and not any(raw):
+            return []  # at rest (most ticks): nothing to send, and no arithmetic to do
         axes = normalize(raw, self.deadzone)
         trans, rot = to_world(axes, self.stance)
         scale = self.sensitivity * dt

@@ -34,3 +34,7 @@ class SessionView(Protocol):
     def body_pos(self, name: str) -> np.ndarray:
         """World position of a body; raises KeyError naming the body if unknown."""
         ...
+
+    def body_quat(self, name: str) -> np.ndarray:
+        """World orientation (wxyz quaternion) of a body; raises KeyError naming the body if unknown."""
+        ...

@@ -65,6 +65,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 SOURCES = ("human", "script", "generated", "policy")
+CAMPAIGN_FIELDS = ("operator", "campaign", "session")  # optional provenance of campaign episodes
 CONTROL_HUMAN, CONTROL_POLICY = 0.0, 1.0  # values of the `control` row field
 
 
@@ -147,6 +148,10 @@ class EpisodeMeta:
     source_episodes: tuple[str, ...] = ()
     generator: Mapping[str, Any] | None = None
     policy: str | None = None
+    # A collection campaign's episodes say who recorded them (issue 35); None elsewhere, and not written.
+    operator: str | None = None
+    campaign: str | None = None
+    session: str | None = None
     records_control: bool = False  # rows carry the `control` field (who drove each step)
     outcome: Outcome = Outcome()
     schema_version: int = SCHEMA_VERSION
@@ -192,6 +197,8 @@ class EpisodeMeta:
             if f.name in ("model_xml", "assets", "extra", "outcome", "arms"):
                 continue
             value = getattr(self, f.name)
+            if value is None and f.name in CAMPAIGN_FIELDS:
+                continue
             out[f.name] = list(value) if isinstance(value, tuple) else (dict(value) if isinstance(value, Mapping) else value)
         out["robot_spec"] = {"name": self.robot, "arms": [_arm_json(a) for a in self.arms]}
         out["n_arms"] = self.n_arms
@@ -246,6 +253,7 @@ class EpisodeMeta:
             source_episodes=tuple(d.get("source_episodes") or ()),
             generator=d.get("generator"),
             policy=d.get("policy"),
+            **{key: None if d.get(key) is None else str(d[key]) for key in CAMPAIGN_FIELDS},
             records_control=bool(d.get("records_control", False)),
             outcome=Outcome(bool(d.get("success", False)), bool(d.get("complete", False)),
                             None if steps is None else int(steps), bool(d.get("recovered", False))),

@@ -23,8 +23,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from recorder.format import EpisodeMeta
-from replay.episode import Episode, load_episode
+from replay.episode import Episode, EpisodeMeta, load_episode
 
 INTEGRATION = int(mujoco.mjtState.mjSTATE_INTEGRATION)
 USER = int(mujoco.mjtState.mjSTATE_USER)

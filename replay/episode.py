@@ -1,5 +1,10 @@
 """Load a recorded episode (MCAP or HDF5) into arrays, whatever state the file was left in.
 
+The one public API for reading episodes: `load_episode`, `find_episodes`, the `Episode` it
+returns and the metadata types it holds (`EpisodeMeta`, `ArmMeta`, the `control` values
+CONTROL_HUMAN / CONTROL_POLICY), so readers (export, learning, generation) need nothing of
+recorder/'s file layout, which only this module and replay/convert.py take apart.
+
 Every problem with a file becomes an EpisodeError whose one-line message names
 the file and what is wrong, so the CLI can print it as is.
 """
@@ -16,13 +21,17 @@ import numpy as np
 from mcap.records import Attachment, Channel, Message, Metadata
 
 from recorder import format as schema
-from recorder.annotations import AnnotationError, read_subtasks
-from recorder.format import CONTROL_POLICY, EpisodeMeta
+from recorder.format import CONTROL_HUMAN, CONTROL_POLICY, ArmMeta, EpisodeMeta
 from replay.errors import TeleopError, first_line
 from replay.mcap_read import McapScan, iter_records
-from scenes.extra_camera import CameraSpecError, ExtraCamera, model_with_cameras
+from scenes.cameras.extra import CameraSpecError, ExtraCamera, model_with_cameras
 
 EPISODE_SUFFIXES = (".mcap", ".hdf5", ".h5")
+
+__all__ = [
+    "CONTROL_HUMAN", "CONTROL_POLICY", "EPISODE_SUFFIXES", "ArmMeta", "Episode", "EpisodeError", "EpisodeMeta",
+    "find_episodes", "load_episode", "sniff_format",
+]
 
 
 class EpisodeError(TeleopError, ValueError):
@@ -313,69 +322,3 @@ def _load_hdf5(path: Path) -> Episode:
 
 def _text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
-
-
-def summarize(episode: Episode) -> dict:
-    """The `teleop inspect` object: what the file holds, without compiling the model."""
-    m = episode.meta
-    if episode.steps:
-        err = np.linalg.norm(episode.ee_target[:, :, :3] - episode.ee_pose[:, :, :3], axis=-1) * 1000.0
-        tracking = {"median": round(float(np.median(err)), 3), "max": round(float(np.max(err)), 3)}
-    else:
-        tracking = {"median": None, "max": None}
-    return {
-        "path": str(episode.path),
-        "format": episode.format,
-        "steps": episode.steps,
-        "seconds": round(episode.seconds, 6),
-        "success": m.success,
-        "complete": m.complete,
-        "truncated": episode.truncated,
-        "robot": m.robot,
-        "scene": m.scene,
-        "seed": m.seed,
-        "task": m.task,
-        "mujoco_version": m.mujoco_version,
-        "machine": m.machine,
-        "platform": m.platform,
-        "control_hz": m.control_hz,
-        "timestep": m.timestep,
-        "substeps": m.substeps,
-        "n_arms": m.n_arms,
-        "nstate": m.nstate,
-        "start_time": m.start_time,
-        "episode_index": m.episode_index,
-        "schema_version": m.schema_version,
-        "steps_with_commands": sum(1 for c in episode.commands if c),
-        "ee_tracking_error_mm": tracking,
-        "source": m.source,
-        "devices": list(m.devices),
-        "source_episodes": list(m.source_episodes),
-        "generator": dict(m.generator) if m.generator else None,
-        "policy": m.policy,
-        "control": _control(episode),
-        "subtasks": _subtasks(episode),
-        "variation": m.extra.get("variation"),  # the physics it was generated with (scenes.variation), or None
-    }
-
-
-def _control(episode: Episode) -> dict | None:
-    """Who drove (None: the episode does not record it): steps by the policy and by a person, and takeovers."""
-    control = episode.control
-    if control is None:
-        return None
-    by_policy = control == CONTROL_POLICY
-    return {
-        "policy_steps": int(by_policy.sum()),
-        "operator_steps": int((~by_policy).sum()),
-        "takeovers": int(np.count_nonzero(by_policy[:-1] & ~by_policy[1:])),
-    }
-
-
-def _subtasks(episode: Episode) -> list[dict] | None:
-    """The episode's stored subtask annotations (None: not annotated, or made for another length)."""
-    try:
-        found = read_subtasks(episode.path, episode.steps)
-    except AnnotationError:
-        return None
-    return None if found is None else [s.to_json() for s in found]

@@ -11,11 +11,11 @@ import mujoco
 import numpy as np
 
 from replay.episode import Episode
-from scenes.build import layout_for
-from scenes.robot import load_robot
-from scenes.task_file import FileTask
-from scenes.task_judge import model_units
-from scenes.tasks import task_for_episode
+from scenes.assembly.build import layout_for
+from scenes.assembly.robot import load_robot
+from scenes.tasks.file_task import FileTask
+from scenes.tasks.geometry import model_units
+from scenes.tasks.registry import task_for_episode
 
 
 def judge_steps(episode: Episode) -> np.ndarray:

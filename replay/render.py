@@ -76,7 +76,7 @@ def _fit_tessellation(m: mujoco.MjModel, pixels: int) -> None:
 
     MuJoCo draws a capsule with 28 slices x 16 stacks whatever the image size; at 224
     pixels a robot link spans up to about a hundred pixels in the cameras framed on
-    the work (scenes.arena), and 19 x 11 gives the same picture but for a few edge
+    the work (scenes.assembly.arena), and 19 x 11 gives the same picture but for a few edge
     pixels, in less rendering time on a CPU (14 x 8 showed facets on the arm as it
     reached under `overhead`). Facets grow with the image: 28 slices again from 336
     pixels up; at 144 pixels and less, 12. Boxes and planes keep their subdivision

@@ -27,9 +27,9 @@ from devices.gizmo import GizmoDevice
 from devices.keyboard import KeyboardDevice
 from devices.script import ScriptDevice
 from devices.spacemouse import SpaceMouseDevice
-from recorder.format import EpisodeMeta
+from replay.episode import EpisodeMeta
 from replay import Episode, VerifyResult, load_episode, replay_states, resimulate
-from replay.export.dataset import ExportOptions, ExportSummary
+from replay.export import ExportOptions, ExportSummary
 from replay.export import export_dataset
 from scenes.errors import TeleopError
 from teleop.control.controller import Controller, StepResult
@@ -75,7 +75,7 @@ def export_lerobot(
     """Write recorded episodes (files or folders) into a LeRobot dataset at `out`.
 
     Every export option is reachable, as `teleop export` has it: pass `options` (a
-    `teleop.ExportOptions`, from `replay.export.dataset`) and/or any of its fields as
+    `teleop.ExportOptions`, from `replay.export.options`) and/or any of its fields as
     keywords, which win over `options`. Among them: camera images (`cameras`; "wrist"
     means every arm's wrist camera) rendered from the recorded states at `image_size`
     (width, height) pixels; action: "joint" (recorded joint targets + gripper), "ee_pose"

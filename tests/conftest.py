@@ -1,49 +1,22 @@
-"""Shared test helpers: run the real CLI in a subprocess, write small files."""
+"""Fixtures the tests share, and the markers each test gets; the helpers themselves are in tests/support.py."""
 
 from __future__ import annotations
 
-import json
 import os
 import re
+import select
+import shutil
 import signal
 import subprocess
-import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+pytest.register_assert_rewrite("tests.support")  # its asserts explain themselves like a test's
 
-
-def run_cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    """`teleop ARGS...` in a fresh process, as a user would run it."""
-    full_env = {**os.environ, **(env or {})}
-    full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
-    return subprocess.run(
-        [sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout, env=full_env, cwd=cwd or ROOT
-    )
-
-
-def run_json(*args: str, **kwargs) -> dict:
-    """Run a CLI command that prints one JSON object, and parse it."""
-    result = run_cli(*args, **kwargs)
-    assert result.returncode == 0, f"exit {result.returncode}: {result.stderr[-2000:]}"
-    return json.loads(result.stdout)
-
-
-def write_script(path: Path, steps: list[dict]) -> Path:
-    path.write_text(json.dumps({"steps": steps}))
-    return path
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) -> None:
-    """Exit 2, a single line on stderr naming the problem, no traceback."""
-    assert result.returncode == 2, f"exit {result.returncode}: {result.stderr}"
-    lines = [line for line in result.stderr.strip().splitlines() if line.strip()]
-    assert len(lines) == 1, f"expected one line, got: {result.stderr!r}"
-    assert "Traceback" not in result.stderr
-    for needle in needles:
-        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
+from tests.support import write_script  # noqa: E402 - after the rewrite is registered
 
 
 @pytest.fixture
@@ -52,6 +25,43 @@ def tmp_script(tmp_path):
         return write_script(tmp_path / name, steps)
 
     return make
+
+
+@pytest.fixture(scope="module")
+def xvfb() -> Iterator[str]:
+    """A private X server; yields its DISPLAY string (":N")."""
+    missing = [tool for tool in ("Xvfb", "xdotool") if not shutil.which(tool)]
+    if missing:
+        pytest.fail(f"keyboard tests need Debian packages xvfb and xdotool (missing: {', '.join(missing)})")
+    read_end, write_end = os.pipe()
+    proc = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(write_end), "-nolisten", "tcp", "-noreset", "-screen", "0", "320x240x24"],
+        pass_fds=(write_end,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    os.close(write_end)
+    number = b""
+    deadline = time.monotonic() + 15
+    while not number.endswith(b"\n") and time.monotonic() < deadline:
+        if select.select([read_end], [], [], 0.5)[0]:
+            chunk = os.read(read_end, 16)
+            if not chunk:
+                break
+            number += chunk
+    os.close(read_end)
+    if not number.strip():
+        proc.kill()
+        pytest.fail("Xvfb did not start")
+    try:
+        yield f":{number.decode().strip()}"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 @pytest.fixture(autouse=True)
@@ -125,3 +135,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.e2e)
         else:
             item.add_marker(pytest.mark.unit)
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """`pytest -m unit` leaves the whole-file e2e modules unimported (their LeRobot and export imports cost seconds
+    of the quick suite's time): every test in them is e2e or browser, so the selection is the same."""
+    if (config.option.markexpr or "").strip() != "unit" or not collection_path.name.startswith("test_") \
+            or collection_path.suffix != ".py":
+        return None
+    if collection_path.name in E2E_FILES or "\npytestmark = pytest.mark.e2e" in collection_path.read_text():
+        return True
+    return None
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The suite's clock (tests/suite_time.py): seconds by marker, `pytest -m unit`'s wall time and its budget."""
+    from tests.suite_time import SuiteClock
+
+    config.pluginmanager.register(SuiteClock(config), "teleop-suite-clock")

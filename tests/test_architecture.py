@@ -3,7 +3,8 @@
 scenes/ imports none of our folders; devices/ and recorder/ at most scenes/;
 replay/ at most recorder/ and scenes/; teleop/ may import all. An import inside
 a function counts like any other: hiding one there does not get around the rule.
-Inside teleop/ the parts have layers of their own (TELEOP_ALLOWED); no module
+Inside teleop/ and replay/ the parts have layers of their own (TELEOP_ALLOWED,
+REPLAY_ALLOWED); the process pool (scenes/workers/) needs only the root error; no module
 imports itself back at module level (TYPE_CHECKING imports count); and no module
 takes another's private (`_name`) names. Kept on purpose (issue 19): one error
 root, and one loop (`run_episode`) around Session.step. Each check has a self-test
@@ -13,6 +14,7 @@ that shows it can fail.
 from __future__ import annotations
 
 import ast
+from functools import lru_cache
 from pathlib import Path
 
 import pytest
@@ -26,6 +28,16 @@ ALLOWED: dict[str, set[str]] = {
     "teleop": {"scenes", "devices", "recorder", "replay"},
 }
 OURS = set(ALLOWED) | {"bench", "tests"}
+
+
+@lru_cache(maxsize=None)
+def parse_text(text: str, filename: str) -> ast.Module:
+    """A file's syntax tree, parsed once per content: every check here walks the same few hundred files."""
+    return ast.parse(text, filename=filename)
+
+
+def parsed(path: Path) -> ast.Module:
+    return parse_text(path.read_text(), str(path))
 
 
 def imported_modules(path: Path) -> list[tuple[int, str, bool]]:
@@ -69,17 +81,18 @@ def test_the_library_layers_import_none_of_ours_lazily():
 
 
 # -- inside teleop/: the app's own layers ------------------------------------------
-# A part of teleop/ is a sub-package (control, generate, learn, web, cli) or a top module
+# A part of teleop/ is a sub-package (control, generate, learn, web, campaign, cli) or a top module
 # (errors, gym: the public `teleop.gym`, __init__: the public `import teleop`, __main__).
-# The data flows control -> generate / learn -> web -> cli: a part imports only the parts
+# The data flows control -> generate / learn -> web -> campaign -> cli: a part imports only the parts
 # its row names, and only cli/ (the commands) imports every part.
-TELEOP_PARTS = ("errors", "control", "generate", "learn", "web", "gym", "__init__", "cli", "__main__")
+TELEOP_PARTS = ("errors", "control", "generate", "learn", "web", "campaign", "gym", "__init__", "cli", "__main__")
 TELEOP_ALLOWED: dict[str, set[str]] = {
     "errors": set(),                                 # the teleop errors, on scenes.errors' root
     "control": {"errors"},                           # controller, IK, session, loop, recording
     "generate": {"errors", "control"},               # scripted demonstrations at scale
     "learn": {"errors", "control"},                  # policy, evaluate, Gymnasium env, takeover
     "web": {"errors", "control", "learn"},           # the browser session (a policy may drive it)
+    "campaign": {"errors", "control", "web"},        # many operators, a session process each (issue 35)
     "gym": {"learn"},                                # `teleop.gym`: registers learn/'s environment
     "__init__": {"errors", "control", "web"},        # `import teleop`: the scripting API
     "cli": set(TELEOP_PARTS) - {"cli", "__main__"},  # the commands: every part
@@ -99,7 +112,7 @@ def imports_with_names(path: Path) -> list[tuple[int, str, tuple[str, ...], bool
     An import under `if TYPE_CHECKING:` is at module level here: the annotations it serves
     tie the two modules together all the same.
     """
-    tree = ast.parse(path.read_text(), filename=str(path))
+    tree = parsed(path)
     found: list[tuple[int, str, tuple[str, ...], bool]] = []
 
     def visit(node: ast.AST, in_function: bool) -> None:
@@ -144,16 +157,21 @@ def teleop_part(module: str) -> str:
     return parts[1] if len(parts) > 1 else "__init__"
 
 
-def teleop_layer_violations(root: Path) -> list[str]:
-    """Every import (inside functions too) from one part of teleop/ into a part its row does not allow."""
-    graph = module_graph(root, ["teleop"], module_level_only=False)
+def layer_violations(root: Path, package: str, allowed: dict[str, set[str]]) -> list[str]:
+    """Every import (inside functions too) from one part of `package` into a part its row in `allowed` does not allow."""
+    graph = module_graph(root, [package], module_level_only=False)
     return [
-        f"{where}: teleop/{teleop_part(module)} imports {target}"
+        f"{where}: {package}/{teleop_part(module)} imports {target}"
         for module, targets in graph.items()
         for target, where in targets.items()
-        if target.split(".")[0] == "teleop" and (a := teleop_part(module)) != (b := teleop_part(target))
-        and b not in TELEOP_ALLOWED.get(a, set())
+        if target.split(".")[0] == package and (a := teleop_part(module)) != (b := teleop_part(target))
+        and b not in allowed.get(a, set())
     ]
+
+
+def teleop_layer_violations(root: Path) -> list[str]:
+    """Every import (inside functions too) from one part of teleop/ into a part its row does not allow."""
+    return layer_violations(root, "teleop", TELEOP_ALLOWED)
 
 
 def test_the_teleop_table_names_every_part():
@@ -179,6 +197,99 @@ def test_the_parts_of_teleop_follow_their_layers():
     rows = "\n".join(f"  {part} may import {sorted(allowed) or 'no other part'}"
                      for part, allowed in TELEOP_ALLOWED.items())
     assert not bad, "\n".join(bad) + "\nthe layers inside teleop/:\n" + rows
+
+
+# -- inside replay/: one reading API, one schema, subtasks in one place ------------------
+# A part of replay/ is a sub-package (subtasks, export, review) or a top module. episode.py
+# is the one API that reads episode files (with the MCAP reader under it); features.py, the
+# frame's schema, sits on it below both the export and teleop/learn; subtasks/ reads episodes
+# and is read by the inspect summary; the export takes neither subtasks nor review.
+REPLAY_ALLOWED: dict[str, set[str]] = {
+    "errors": set(),                                          # the one-line error helpers
+    "mcap_read": set(),                                       # MCAP records, crash-cut files too
+    "episode": {"errors", "mcap_read"},                       # the reading API: load_episode, Episode, EpisodeMeta
+    "convert": {"errors", "episode", "mcap_read"},            # MCAP <-> HDF5, recovery
+    "engine": {"errors", "episode"},                          # exact replay and resimulation
+    "judge": {"errors", "episode"},                           # success judged on recorded states
+    "render": {"errors"},                                     # offscreen rendering
+    "features": {"errors", "episode"},                        # the observation and action schema
+    "subtasks": {"errors", "episode"},                        # sidecar files, auto-annotation, hand edits
+    "summary": {"episode", "subtasks", "review"},             # what `teleop inspect` shows (quality flags too)
+    "export": {"errors", "episode", "engine", "render", "features", "review", "subtasks"},  # LeRobot datasets (what passed review)
+    "review": {"errors", "episode", "engine", "judge", "render", "features", "subtasks"},  # reviewing episodes
+    "__init__": {"engine", "episode"},                        # `import replay`
+}
+
+
+def test_the_replay_table_names_every_part():
+    found = {teleop_part(module_name(ROOT, p)) for p in (ROOT / "replay").rglob("*.py")}
+    assert found == set(REPLAY_ALLOWED), "add the new part of replay/ to REPLAY_ALLOWED"
+
+
+def test_the_replay_layer_check_can_fail(tmp_path):
+    files = {"__init__.py": "", "episode.py": "", "export/__init__.py": "",
+             "features.py": "from replay.episode import Episode\nfrom replay.export import options\n",
+             "export/options.py": "from replay.features import features\n"}
+    for name, text in files.items():
+        (tmp_path / "replay" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "replay" / name).write_text(text)
+    assert layer_violations(tmp_path, "replay", REPLAY_ALLOWED) == [
+        "replay/features.py:2: replay/features imports replay.export.options"]
+
+
+def test_the_parts_of_replay_follow_their_layers():
+    bad = layer_violations(ROOT, "replay", REPLAY_ALLOWED)
+    rows = "\n".join(f"  {part} may import {sorted(allowed) or 'no other part'}"
+                     for part, allowed in REPLAY_ALLOWED.items())
+    assert not bad, "\n".join(bad) + "\nthe layers inside replay/:\n" + rows
+
+
+FORMAT_READERS = {"replay.episode", "replay.convert", "teleop.control.recording"}  # and recorder/ itself
+
+
+def format_importers(root: Path, packages) -> dict[str, str]:
+    """module -> "path:line" for each module outside recorder/ that imports recorder.format (the file layout)."""
+    graph = module_graph(root, packages, module_level_only=False)
+    return {module: targets["recorder.format"] for module, targets in graph.items()
+            if "recorder.format" in targets and module.split(".")[0] != "recorder"}
+
+
+def test_the_format_importer_check_can_fail(tmp_path):
+    for name, text in {"recorder/__init__.py": "", "recorder/format.py": "", "replay/__init__.py": "",
+                       "replay/features.py": "def f():\n    from recorder import format\n"}.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert format_importers(tmp_path, ["recorder", "replay"]) == {"replay.features": "replay/features.py:2"}
+
+
+def test_readers_use_the_one_reading_api():
+    """Learning, generation, export and subtasks read episodes through replay.episode, which re-exports the
+    metadata types: only the writer (teleop/control/recording.py) and the two readers take recorder.format."""
+    found = format_importers(ROOT, sorted(ALLOWED))
+    extra = sorted(f"{where}: {module} imports recorder.format" for module, where in found.items()
+                   if module not in FORMAT_READERS)
+    assert not extra, "read through replay.episode (EpisodeMeta, ArmMeta, CONTROL_*) instead:\n" + "\n".join(extra)
+
+
+def test_learning_and_generation_take_the_schema_not_the_export():
+    """teleop/learn and teleop/generate share replay.features with the export and import nothing of replay.export."""
+    graph = module_graph(ROOT, ["teleop"], module_level_only=False)
+    found = sorted(f"{where}: {module} imports {target}" for module, targets in graph.items()
+                   if teleop_part(module) in ("learn", "generate")
+                   for target, where in targets.items() if target.startswith("replay.export"))
+    assert not found, "\n".join(found)
+
+
+def test_the_process_pool_needs_only_the_root_error():
+    """scenes/workers/ (the pool generation, export and the web session share) stays on the lowest floor:
+    of ours it imports scenes.errors only, so any folder may use it."""
+    graph = module_graph(ROOT, ["scenes"], module_level_only=False)
+    found = sorted(f"{where}: {module} imports {target}" for module, targets in graph.items()
+                   if module.startswith("scenes.workers")
+                   for target, where in targets.items()
+                   if not target.startswith("scenes.workers") and target != "scenes.errors")
+    assert graph.get("scenes.workers.runner"), "the pool is not where this test looks (scenes/workers/)"
+    assert not found, "\n".join(found)
 
 
 # -- no import cycles ---------------------------------------------------------------
@@ -244,7 +355,7 @@ def private_names_taken(root: Path, packages) -> list[str]:
     found = []
     for module, path in files.items():
         where = path.relative_to(root)
-        tree = ast.parse(path.read_text(), filename=str(path))
+        tree = parsed(path)
         bound: dict[str, str] = {}  # a local name -> the module of ours it is
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
@@ -295,7 +406,7 @@ def errors_off_the_root(root: Path, packages) -> list[str]:
     where: dict[str, str] = {}
     for package in packages:
         for path in sorted((root / package).rglob("*.py")):
-            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            for node in ast.walk(parsed(path)):
                 if isinstance(node, ast.ClassDef):
                     bases[node.name] = [ast.unparse(b).rpartition(".")[2] for b in node.bases]
                     where[node.name] = f"{path.relative_to(root)}:{node.lineno}"
@@ -324,7 +435,7 @@ def test_every_error_a_user_can_cause_has_the_one_root():
 def loops_that_step_a_session(path: Path) -> list[int]:
     """Lines of `for` / `while` loops whose body calls `<...session>.step(...)`."""
     lines = []
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(parsed(path)):
         if isinstance(node, (ast.For, ast.While)) and any(
             isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr == "step"
             and ast.unparse(call.func.value).endswith("session")
@@ -393,7 +504,7 @@ def test_every_device_speaks_the_one_protocol(tmp_path):
 def signal_handler_calls(path: Path) -> list[int]:
     """Lines that install a signal handler: `signal.signal(...)`, or `signal` imported from the signal module."""
     lines = []
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(parsed(path)):
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "signal" \
                 and isinstance(node.func.value, ast.Name) and node.func.value.id == "signal":
             lines.append(node.lineno)
@@ -435,7 +546,7 @@ def viser_internals_touched(path: Path) -> list[str]:
     def private(dotted: str) -> bool:
         return any(part.startswith("_") for part in dotted.split(".")[1:])
 
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(parsed(path)):
         line = getattr(node, "lineno", 0)
         if isinstance(node, ast.Import):
             for alias in node.names:

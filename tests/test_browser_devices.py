@@ -12,6 +12,7 @@ import teleop
 from devices.gamepad import A, B, BACK, LB, LT, N_BUTTONS, RB, RT, START, STALE_S, GamepadDevice, stick
 from devices.spacemouse_protocol import encode_buttons, encode_combined, encode_separate
 from devices.webhid import BrowserHidHandle, WebHidSpaceMouse
+from tests.support import wait_until
 
 DT = 1.0 / 30
 
@@ -91,23 +92,14 @@ def test_record_event_starts_then_saves(tmp_path):
     g = GamepadDevice()
     with teleop.Recorder(session, tmp_path, verify="off") as rec:
         pad(g, pressed={START: 1.0})
-        session.step(g.poll(session, session.dt))
+        session.step(g.poll(session.controller, session.dt))
         assert rec.recording
         pad(g)
         for _ in range(5):
-            session.step(g.poll(session, session.dt))
+            session.step(g.poll(session.controller, session.dt))
         pad(g, pressed={START: 1.0})
-        session.step(g.poll(session, session.dt))
+        session.step(g.poll(session.controller, session.dt))
         assert not rec.recording and rec.episodes_saved == 1
-
-
-def _wait(predicate, timeout=3.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 @pytest.mark.parametrize("layout", ["separate", "combined"])
@@ -121,17 +113,17 @@ def test_webhid_reports_go_through_the_spacemouse_parser(layout):
         reports = list(encode_separate(350, 0, 0, 0, 0, 0)) if layout == "separate" else [encode_combined(350, 0, 0, 0, 0, 0)]
         for report in reports:
             assert handle.push(report[0], report[1:])
-        assert _wait(lambda: device.reports == len(reports))
+        assert wait_until(lambda: device.reports == len(reports), 3.0)
         assert device.status() == "SpaceMouse Compact in a browser"
         (cmd,) = device.poll(None, DT)
         assert np.linalg.norm(cmd.translation) == pytest.approx(0.2 * DT, rel=0.02)  # full deflection, one axis
         button = encode_buttons(1)
         handle.push(button[0], button[1:])  # left button: the gripper
-        assert _wait(lambda: device.reports == len(reports) + 1)
+        assert wait_until(lambda: device.reports == len(reports) + 1, 3.0)
         assert [c.gripper for c in device.poll(None, DT)] == ["toggle"]
         assert not handle.push(1, bytes(70))  # too long for a SpaceMouse report: dropped
         device.source.disconnect(handle)  # the browser went away: motion stops at once
-        assert _wait(lambda: not device._connected)
+        assert wait_until(lambda: not device._connected, 3.0)
         assert device.poll(None, DT) == []
         assert "waiting" in device.status()
     finally:
@@ -169,26 +161,26 @@ def test_phone_moves_the_target_only_while_the_clutch_is_held():
 
     session = teleop.Session("lift", "panda", seed=0)
     phone = PhoneDevice()
-    start_pos, start_quat = (np.array(v) for v in session.target_pose())
+    start_pos, start_quat = (np.array(v) for v in session.controller.target_pose())
     facing_north = _about_z(90)  # the operator faces north: that is the robot's +x at the press
     phone.push_pose(facing_north, clutch=False)
     phone.push_pose(quat_mul(_about_z(30), facing_north), clutch=False)  # turned without the clutch
-    session.step(phone.poll(session, session.dt))
-    np.testing.assert_allclose(session.target_pose()[1], start_quat, atol=1e-12)
+    session.step(phone.poll(session.controller, session.dt))
+    np.testing.assert_allclose(session.controller.target_pose()[1], start_quat, atol=1e-12)
 
     phone.push_pose(facing_north, clutch=True)
-    session.step(phone.poll(session, session.dt))  # the press: motion counts from here
+    session.step(phone.poll(session.controller, session.dt))  # the press: motion counts from here
     phone.push_pose(quat_mul(_about_z(30), facing_north), clutch=True)  # 30 degrees left
-    session.step(phone.poll(session, session.dt))
-    turned = session.target_pose()[1]
+    session.step(phone.poll(session.controller, session.dt))
+    turned = session.controller.target_pose()[1]
     assert _yaw_of(turned) - _yaw_of(start_quat) == pytest.approx(30.0, abs=0.5)
-    np.testing.assert_allclose(session.target_pose()[0], start_pos, atol=1e-9)  # no WebXR: rotation only
+    np.testing.assert_allclose(session.controller.target_pose()[0], start_pos, atol=1e-9)  # no WebXR: rotation only
 
     phone.push_pose(quat_mul(_about_z(30), facing_north), clutch=False)  # let go...
-    session.step(phone.poll(session, session.dt))
+    session.step(phone.poll(session.controller, session.dt))
     phone.push_pose(facing_north, clutch=False)  # ...and turn back freely
-    session.step(phone.poll(session, session.dt))
-    np.testing.assert_allclose(session.target_pose()[1], turned, atol=1e-12)
+    session.step(phone.poll(session.controller, session.dt))
+    np.testing.assert_allclose(session.controller.target_pose()[1], turned, atol=1e-12)
 
 
 def test_phone_with_webxr_maps_forward_to_world_x_and_rejects_bad_poses():
@@ -196,20 +188,20 @@ def test_phone_with_webxr_maps_forward_to_world_x_and_rejects_bad_poses():
 
     session = teleop.Session("lift", "panda", seed=0)
     phone = PhoneDevice(scale=0.5)
-    start_pos = np.array(session.target_pose()[0])
+    start_pos = np.array(session.controller.target_pose()[0])
     facing_west = _about_z(180)  # phone's top edge toward earth -y... heading of +y rotated 180 deg: south
     assert phone.push_pose(facing_west, pos=[1.0, 2.0, 0.0], clutch=True)
-    session.step(phone.poll(session, session.dt))
+    session.step(phone.poll(session.controller, session.dt))
     heading_dir = np.array([0.0, -1.0, 0.0])  # where the phone's top points: that is world +x now
     assert phone.push_pose(facing_west, pos=np.array([1.0, 2.0, 0.0]) + 0.1 * heading_dir + [0, 0, 0.04], clutch=True)
-    session.step(phone.poll(session, session.dt))
-    np.testing.assert_allclose(session.target_pose()[0], start_pos + [0.05, 0.0, 0.02], atol=1e-6)
+    session.step(phone.poll(session.controller, session.dt))
+    np.testing.assert_allclose(session.controller.target_pose()[0], start_pos + [0.05, 0.0, 0.02], atol=1e-6)
     assert not phone.push_pose([0, 0, 0, 0], clutch=True)
     assert not phone.push_pose([1, 0, 0, 0], pos=[float("nan"), 0, 0])
     assert not phone.push_pose([1, 0, 0], clutch=True)
     phone.press("gripper")
     phone.press("record")
-    commands = phone.poll(session, session.dt)
+    commands = phone.poll(session.controller, session.dt)
     assert commands[0].gripper == "toggle" and commands[1].events == ("record",)
 
 
@@ -252,12 +244,12 @@ def test_a_page_that_goes_away_lets_go_of_its_pad_phone_and_spacemouse():
         inputs.received(1, HidConnect("SpaceMouse Compact"))
         report = encode_combined(0, -350, 0, 0, 0, 0)
         inputs.received(1, Hid(report[0], report[1:]))
-        assert _wait(lambda: mouse.reports == 1)
+        assert wait_until(lambda: mouse.reports == 1, 3.0)
         assert pad.poll(None, DT) and "held" in phone.status() and mouse.poll(None, DT)
         inputs.received(2, Gamepad("other", (), (), True))  # another page's pad now: page 1 no longer owns it
         inputs.closed(1)
         assert pad.poll(None, DT) == [] and "no phone" in phone.status()
-        assert _wait(lambda: not mouse._connected) and mouse.poll(None, DT) == []
+        assert wait_until(lambda: not mouse._connected, 3.0) and mouse.poll(None, DT) == []
         inputs.received(3, Hid(1, b"\x00" * 12))  # reports before a hid_connect: not used
         assert inputs.unused == 1
     finally:

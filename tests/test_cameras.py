@@ -1,6 +1,6 @@
 """Cameras framed on the task: the pixel figure on every task and robot, real exported pixels, `--camera`.
 
-The figure (`object_px_at_96`, scenes.camera_figure) is geometry: each task object's
+The figure (`object_px_at_96`, scenes.cameras.figure) is geometry: each task object's
 bounding boxes projected through the compiled camera. It is checked here on every
 built-in and library task with each robot the task lists (seed 0), against a hand
 computation, and against the pixels of a real 96x96 export.
@@ -17,17 +17,16 @@ import mujoco
 import numpy as np
 import pytest
 
-from scenes.arena import room_camera
-from scenes.build import build_scene
-from scenes.camera_figure import camera_figures, object_bodies
-from scenes.camera_view import CameraPose, fit_points, geom_corners, body_geoms, in_view, object_px, project
-from scenes.extra_camera import CameraSpecError, parse_camera
-from scenes.framing import work_points
-from scenes.tasks import TASKS, find_task, library_tasks
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
+from scenes.assembly.arena import room_camera
+from scenes.assembly.build import build_scene
+from scenes.cameras.figure import camera_figures, object_bodies
+from scenes.cameras.view import CameraPose, fit_points, geom_corners, body_geoms, in_view, object_px, project
+from scenes.cameras.extra import CameraSpecError, parse_camera
+from scenes.assembly.framing import work_points
+from scenes.tasks.registry import TASKS, find_task, library_tasks
+from tests.support import PICK, ROOT, assert_one_line_error, record_script, run_cli, run_json
 
 SCENES = [(name, robot) for name in [*TASKS, *library_tasks()] for robot in find_task(name).robots]
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 SIDE = "side=pos:0.47,-0.7,0.45;look_at:0.47,0,0.02;fovy:40"
 
 
@@ -151,7 +150,7 @@ def test_scenes_json_reports_each_cameras_figure():
 def recorded(tmp_path_factory):
     """A scripted lift pick with the Panda, seed 0, as MCAP and HDF5."""
     rec = tmp_path_factory.mktemp("cameras") / "lift"
-    run_json("run", "--device", f"script:{PICK}", "--record", str(rec), "--control-hz", "15", "--format", "both", "--json")
+    record_script(rec, PICK, "--control-hz", "15", "--format", "both")
     return rec
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json
 
 PICK = str(ROOT / "scenes" / "scripts" / "lift_pick.json")
 

@@ -13,8 +13,7 @@ import pytest
 
 from devices.base import DeviceError
 from devices.registry import DeviceOptions, open_devices
-from tests.conftest import ROOT, assert_one_line_error, write_script
-from tests.test_keyboard import xdotool, xvfb  # noqa: F401 - xvfb is a fixture
+from tests.support import ROOT, assert_one_line_error, write_script, xdotool
 
 POS = 0.2
 

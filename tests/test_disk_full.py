@@ -10,82 +10,25 @@ before it must load and replay exactly. The browser session keeps driving.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import re
-import resource
-import signal
 import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT, run_cli, run_json
+from tests.support import CAUSES, ROOT, SmallFs, run_cli, run_json, small_fs
 
 SCRIPT = ROOT / "scenes" / "scripts" / "lift_pick.json"  # 144 steps; one episode is ~135 KB MCAP, ~600 KB HDF5
-CAUSES = ("No space left on device", "File too large")
 FAILED_FILE = re.compile(r"(/\S+/episode_(\d{6})\.(mcap|hdf5)): ")
 # tmpfs size: room for two whole episodes but not three. File size limit: half an episode's file.
 TMPFS_KB = {"mcap": 330, "hdf5": 1500, "both": 1850}
 FILE_LIMIT = {"mcap": 64_000, "hdf5": 300_000, "both": 300_000}
-
-
-@dataclass
-class SmallFs:
-    """A directory where writing fails early: a small tmpfs, or a per-file size limit to apply."""
-
-    path: Path
-    file_limit: int | None  # bytes (RLIMIT_FSIZE) when not a tmpfs
-
-    def preexec(self):
-        """For subprocess: the child gets the file size limit, and EFBIG instead of SIGXFSZ."""
-        if self.file_limit is None:
-            return None
-        limit = self.file_limit
-
-        def apply() -> None:
-            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
-
-        return apply
-
-    @contextlib.contextmanager
-    def limited(self):
-        """In this process: the file size limit while the block runs (a tmpfs needs none)."""
-        if self.file_limit is None:
-            yield
-            return
-        old_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
-        old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (self.file_limit, old_limit[1]))
-        try:
-            yield
-        finally:
-            resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
-            signal.signal(signal.SIGXFSZ, old_handler)
-
-
-@contextlib.contextmanager
-def small_fs(tmp_path: Path, tmpfs_kb: int, file_limit: int):
-    """A tmpfs of `tmpfs_kb` KiB as root (unmounted afterwards, always), else RLIMIT_FSIZE of `file_limit` bytes."""
-    path = tmp_path / "small"
-    path.mkdir()
-    mounted = False
-    if os.geteuid() == 0 and os.environ.get("TELEOP_TEST_SMALL_FS") != "rlimit":  # rlimit: test the fallback as root
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={tmpfs_kb}k", "tmpfs", str(path)],
-                              capture_output=True, text=True)
-        mounted = done.returncode == 0  # a container without the right to mount: fall back to the limit
-    try:
-        yield SmallFs(path, None if mounted else file_limit)
-    finally:
-        if mounted:
-            subprocess.run(["umount", "-l", str(path)], check=False)
 
 
 def teleop_run(fs: SmallFs, fmt: str, episodes: int, limited: bool = True) -> subprocess.CompletedProcess:
@@ -202,7 +145,7 @@ def test_serve_keeps_driving_when_the_disk_fills(tmp_path):
             with fs.limited():
                 app.start()
                 app.panel_device.push(Command(events=("start",)))
-                pos, quat = session.target_pose(0)
+                pos, quat = session.controller.target_pose(0)
                 deadline = time.monotonic() + 60
                 i = 0
                 while time.monotonic() < deadline and app.sim.snapshot.recording_error is None:

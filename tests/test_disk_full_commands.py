@@ -1,7 +1,7 @@
 """Issue 25: a full disk in every command that writes: one line naming the file and the cause, exit 2,
 no traceback, no orphaned workers, no temporary file left, and what was complete before still usable.
 
-Each test writes onto a real small tmpfs (tests/test_disk_full.py's `small_fs`; without the right to
+Each test writes onto a real small tmpfs (tests/support.py's `small_fs`; without the right to
 mount, the same helper falls back to a per-file size limit, EFBIG). A long job (generate, export) first
 says in one line when the free space is clearly too small, unless --force.
 """
@@ -19,9 +19,8 @@ from pathlib import Path
 import pytest
 
 import teleop
-from recorder.annotations import read_subtasks, sidecar_path
-from tests.conftest import ROOT, run_cli, run_json
-from tests.test_disk_full import CAUSES, small_fs
+from replay.subtasks.sidecar import read_subtasks, sidecar_path
+from tests.support import CAUSES, ROOT, run_cli, run_json, small_fs
 
 HZ = 30
 

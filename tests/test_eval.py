@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
+from tests.support import PICK, assert_one_line_error, run_cli, run_json
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -25,7 +25,6 @@ from replay import load_episode  # noqa: E402
 from teleop.learn.evaluate import EvalOptions, evaluate, wilson_interval  # noqa: E402
 from teleop.learn.policy import Policy, PolicyMismatch, ScriptedPolicy, check_features  # noqa: E402
 
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
 
 @pytest.fixture(scope="module")
@@ -163,13 +162,13 @@ def test_a_trained_checkpoint_drives_a_served_session_until_taken_over(trained):
     takeover = Takeover.for_session(session, policy)
     try:
         assert takeover.env.cameras == ["front"] and takeover.env.image_size == (32, 32)
-        home = session.data.ctrl.copy()
+        home = session.controller.data.ctrl.copy()
         gizmo = GizmoDevice()
         run_episode(session, [gizmo], max_steps=5, record=False, steer=takeover.steer)
         assert takeover.driver == "policy" and takeover.policy_steps == 5
-        assert not np.array_equal(session.data.ctrl, home)  # the policy's joint targets went to ctrl
+        assert not np.array_equal(session.controller.data.ctrl, home)  # the policy's joint targets went to ctrl
         assert takeover.status()["inference_ms"] > 0 and takeover.status()["observe_ms"] > 0
-        gizmo.push(0, session.target_pose()[0] + [0.0, 0.03, 0.0], session.target_pose()[1], "start")
+        gizmo.push(0, session.controller.target_pose()[0] + [0.0, 0.03, 0.0], session.controller.target_pose()[1], "start")
         run_episode(session, [gizmo], max_steps=3, record=False, steer=takeover.steer)
         assert takeover.driver == "operator" and takeover.policy_steps == 5 and takeover.operator_steps == 3
     finally:
@@ -181,7 +180,7 @@ def test_eval_record_on_a_full_disk_is_one_line_with_the_report(trained, tmp_pat
     the --json report of the rollouts done (with `error`), every rollout recorded before it whole."""
     import json
 
-    from tests.test_disk_full import CAUSES, small_fs
+    from tests.support import CAUSES, small_fs
 
     with small_fs(tmp_path, 300, 100_000) as fs:
         rec = fs.path / "rollouts"

@@ -18,23 +18,17 @@ import mujoco
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json, write_script
+from tests.support import PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_json, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
 from replay import load_episode  # noqa: E402
-from replay.export.dataset import ExportError, ExportOptions  # noqa: E402
+from replay.export import ExportError, ExportOptions  # noqa: E402
 from replay.export import export_dataset  # noqa: E402
 
 HZ = "15"
 SIZE = "64x64"
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
-
-
-def _record(directory, script, *extra: str) -> dict:
-    return run_json("run", "--device", f"script:{script}", "--record", str(directory), "--control-hz", HZ,
-                    "--json", *extra)
 
 
 @pytest.fixture(scope="module")
@@ -42,10 +36,10 @@ def recorded(tmp_path_factory):
     """episode_000000/1: successful picks (seeds 0, 1); episode_000002: fails its task."""
     root = tmp_path_factory.mktemp("episodes")
     rec = root / "lift"
-    picks = _record(rec, PICK, "--episodes", "2")
+    picks = record_script(rec, PICK, "--control-hz", HZ, "--episodes", "2")
     assert [e["success"] for e in picks["per_episode"]] == [True, True]
     fail_script = write_script(root / "fail.json", [{"duration": 0.6, "move": [0, 0.05, 0]}])
-    fail = _record(rec, fail_script, "--seed", "7")
+    fail = record_script(rec, fail_script, "--control-hz", HZ, "--seed", "7")
     assert fail["success"] is False
     files = sorted(rec.glob("*.mcap"))
     assert len(files) == 3
@@ -61,16 +55,6 @@ def exported(recorded, tmp_path_factory):
     return {"out": out, "stdout": result.stdout, "stderr": result.stderr}
 
 
-def _open(out, repo_id="test/lift"):
-    from lerobot.datasets import LeRobotDataset
-
-    return LeRobotDataset(repo_id, root=out)
-
-
-def _column(ds, key: str) -> np.ndarray:
-    return np.asarray(ds.hf_dataset.with_format("numpy")[key])
-
-
 def _episodes(recorded):
     return [load_episode(f) for f in recorded["files"]]
 
@@ -83,7 +67,7 @@ def _same_rotation(a: np.ndarray, b: np.ndarray, atol: float = 2e-6) -> bool:
 
 def test_export_loads_offline_with_recorded_values(recorded, exported):
     eps = _episodes(recorded)
-    ds = _open(exported["out"])
+    ds = open_dataset(exported["out"], "test/lift")
     steps = [e.steps for e in eps]
     assert ds.num_episodes == 3 and ds.num_frames == sum(steps) == len(ds)
     assert ds.fps == 15 and ds.meta.robot_type == "panda"
@@ -101,8 +85,8 @@ def test_export_loads_offline_with_recorded_values(recorded, exported):
 
     # Episode boundaries, frame order and task text.
     meta_eps = ds.meta.episodes
-    episode_index, frame_index = _column(ds, "episode_index"), _column(ds, "frame_index")
-    task_index = _column(ds, "task_index")
+    episode_index, frame_index = column(ds, "episode_index"), column(ds, "frame_index")
+    task_index = column(ds, "task_index")
     start = 0
     for i, ep in enumerate(eps):
         row = meta_eps[i]
@@ -116,7 +100,7 @@ def test_export_loads_offline_with_recorded_values(recorded, exported):
     assert ds[0]["task"] == "Pick up the red cube and lift it."
 
     # Values: actions are the recorded ctrl, states the recorded qpos, EE poses the replayed site pose.
-    action, state, pose = _column(ds, "action"), _column(ds, "observation.state"), _column(ds, "observation.ee_pose")
+    action, state, pose = column(ds, "action"), column(ds, "observation.state"), column(ds, "observation.ee_pose")
     start = 0
     for ep in eps:
         rows = slice(start, start + ep.steps)
@@ -164,7 +148,7 @@ def test_export_prints_its_summary_and_at_most_the_video_decoder(recorded, expor
 
 
 def test_images_are_rendered_and_change(recorded, exported):
-    ds = _open(exported["out"])
+    ds = open_dataset(exported["out"], "test/lift")
     steps = load_episode(recorded["files"][0]).steps
     for key in ("observation.images.front", "observation.images.wrist"):
         first, last = ds[0][key].numpy(), ds[steps - 1][key].numpy()
@@ -180,7 +164,7 @@ def test_only_success_and_append(recorded, tmp_path):
     s1 = export_dataset([recorded["dir"]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
                                                            image_size=(32, 32), only_success=True, progress=False))
     assert (s1.episodes, s1.skipped_failed, s1.frames) == (2, 1, eps[0].steps + eps[1].steps)
-    ds = _open(out, "test/append")
+    ds = open_dataset(out, "test/append")
     assert ds.num_episodes == 2
 
     # Append the failed one under another task text; a plain export into `out` is refused.
@@ -190,12 +174,12 @@ def test_only_success_and_append(recorded, tmp_path):
     s2 = export_dataset([recorded["files"][2]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
                                                                image_size=(32, 32), append=True, task="Wave.", progress=False))
     assert (s2.episodes, s2.dataset_episodes) == (1, 3)
-    ds = _open(out, "test/append")
+    ds = open_dataset(out, "test/append")
     assert ds.num_episodes == 3 and ds.num_frames == sum(e.steps for e in eps)
     last = ds.meta.episodes[2]
     assert last["tasks"] == ["Wave."] and last["dataset_from_index"] == eps[0].steps + eps[1].steps
     assert ds[ds.num_frames - 1]["task"] == "Wave."
-    action = _column(ds, "action")
+    action = column(ds, "action")
     assert np.array_equal(action[-eps[2].steps:, :7], eps[2].ctrl[:, :7].astype(np.float32))
     assert ds[ds.num_frames - 1]["observation.images.front"].std() > 0.05
 
@@ -203,7 +187,7 @@ def test_only_success_and_append(recorded, tmp_path):
     with pytest.raises(ExportError, match="does not match"):
         export_dataset([recorded["files"][2]], ExportOptions(out=out, repo_id="test/append", cameras=["front"],
                                                               image_size=(48, 32), append=True, progress=False))
-    assert _open(out, "test/append").num_episodes == 3
+    assert open_dataset(out, "test/append").num_episodes == 3
 
 
 def test_append_to_a_channel_first_dataset_keeps_its_layout(recorded, tmp_path):
@@ -219,7 +203,7 @@ def test_append_to_a_channel_first_dataset_keeps_its_layout(recorded, tmp_path):
     info_path.write_text(json.dumps(info, indent=4))
 
     export_dataset(recorded["files"][1:2], ExportOptions(**opts, append=True))
-    ds = _open(out, "test/chw")
+    ds = open_dataset(out, "test/chw")
     assert ds.num_episodes == 2
     assert list(ds.meta.features["observation.images.front"]["shape"]) == [3, 24, 32]
     last = ds[ds.num_frames - 1]["observation.images.front"]
@@ -228,7 +212,7 @@ def test_append_to_a_channel_first_dataset_keeps_its_layout(recorded, tmp_path):
 
 def test_image_stats_are_per_channel_and_match_the_frames(exported):
     """LeRobot's per-frame image statistics (what normalization uses), counted per channel (replay/export/stats.py)."""
-    ds = _open(exported["out"])
+    ds = open_dataset(exported["out"], "test/lift")
     for key in ("observation.images.front", "observation.images.wrist"):
         stats = ds.meta.stats[key]
         assert {"mean", "std", "min", "max", "q01", "q99"} <= set(stats)
@@ -243,7 +227,7 @@ def test_image_stats_are_per_channel_and_match_the_frames(exported):
 
 
 def _codec(out, repo_id: str, key: str = "observation.images.front") -> str:
-    return _open(out, repo_id).meta.features[key]["info"]["video.codec"]
+    return open_dataset(out, repo_id).meta.features[key]["info"]["video.codec"]
 
 
 def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tmp_path):
@@ -257,7 +241,7 @@ def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tm
     with pytest.raises(ExportError, match="holds av1 video"):
         export_dataset(recorded["files"][1:2], ExportOptions(**opts, vcodec="h264", append=True))
     export_dataset(recorded["files"][1:2], ExportOptions(**opts, append=True))
-    ds = _open(out, "test/av1")
+    ds = open_dataset(out, "test/av1")
     assert ds.num_episodes == 2 and _codec(out, "test/av1") == "av1"
     first, last = ds[0]["observation.images.front"].numpy(), ds[ds.num_frames - 1]["observation.images.front"].numpy()
     assert first.std() > 0.05 and last.std() > 0.05 and np.abs(first - last).mean() > 0.02
@@ -276,19 +260,19 @@ def test_ee_actions_and_images_without_video(recorded, tmp_path):
     ee_pose = export_dataset(files, ExportOptions(out=tmp_path / "pose", repo_id="t/pose", cameras=[],
                                                   action="ee_pose", progress=False))
     assert ee_pose.frames == ep.steps
-    ds = _open(tmp_path / "pose", "t/pose")
+    ds = open_dataset(tmp_path / "pose", "t/pose")
     assert ds.meta.features["action"]["names"] == ["x", "y", "z", "qw", "qx", "qy", "qz", "gripper"]
     assert not any(k.startswith("observation.images") for k in ds.meta.features)
-    act = _column(ds, "action")
+    act = column(ds, "action")
     np.testing.assert_array_equal(act[:, :3], ep.ee_target[:, 0, :3].astype(np.float32))
     assert _same_rotation(act[:, 3:7], ep.ee_target[:, 0, 3:])
     np.testing.assert_array_equal(act[:, 7], ep.gripper[:, 0].astype(np.float32))
 
     export_dataset(files, ExportOptions(out=tmp_path / "delta", repo_id="t/delta", cameras=["wrist"], image_size=(32, 24),
                                         action="ee_delta", video=False, progress=False))
-    ds = _open(tmp_path / "delta", "t/delta")
+    ds = open_dataset(tmp_path / "delta", "t/delta")
     assert ds.meta.features["observation.images.wrist"]["dtype"] == "image"
-    act, pose = _column(ds, "action"), _column(ds, "observation.ee_pose")
+    act, pose = column(ds, "action"), column(ds, "observation.ee_pose")
     # current pose + delta = commanded target
     np.testing.assert_allclose(pose[:, :3] + act[:, :3], ep.ee_target[:, 0, :3], atol=2e-6)
     for k in range(0, ep.steps, 7):
@@ -304,12 +288,12 @@ def test_ee_actions_and_images_without_video(recorded, tmp_path):
 def test_bimanual_concatenates_arms_and_names_wrist_cameras(tmp_path):
     script = write_script(tmp_path / "bi.json", [{"duration": 0.4, "move": [0, 0, 0.03], "arm": 0},
                                                  {"duration": 0.4, "move": [0, 0, 0.03], "arm": 1}])
-    rec = _record(tmp_path / "bi", script, "--robot", "bimanual", "--scene", "lift")
+    rec = record_script(tmp_path / "bi", script, "--control-hz", HZ, "--robot", "bimanual", "--scene", "lift")
     out = tmp_path / "bi_ds"
     result = run_cli("export", str(tmp_path / "bi"), "--out", str(out), "--repo-id", "t/bi",
                      "--cameras", "front,wrist", "--image-size", "48x32")
     assert result.returncode == 0, result.stderr[-2000:]
-    ds = _open(out, "t/bi")
+    ds = open_dataset(out, "t/bi")
     ep = load_episode(rec["files"][0])
     feats = ds.meta.features
     assert {"observation.images.front", "observation.images.left_wrist", "observation.images.right_wrist"} <= set(feats)
@@ -318,7 +302,7 @@ def test_bimanual_concatenates_arms_and_names_wrist_cameras(tmp_path):
     assert tuple(feats["observation.ee_pose"]["shape"]) == (14,)
     model = ep.build_model()
     ids = [model.actuator(a).id for arm in arms for a in arm.actuators]
-    action = _column(ds, "action")
+    action = column(ds, "action")
     n = len(arms[0].joints)
     np.testing.assert_array_equal(action[:, :n], ep.ctrl[:, ids[:n]].astype(np.float32))
     np.testing.assert_array_equal(action[:, n + 1:2 * n + 1], ep.ctrl[:, ids[n:]].astype(np.float32))
@@ -375,9 +359,9 @@ def test_without_lerobot_says_which_extra(recorded, tmp_path):
 
 
 def _readme_train_command() -> list[str]:
-    """The `lerobot-train` command of README.md's "Train a policy" section, as argv."""
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("### Train a policy"):]
+    """The `lerobot-train` command of docs/learning.md's "Train a policy" section, as argv."""
+    text = (ROOT / "docs" / "learning.md").read_text()
+    section = text[text.index("## Train a policy"):]
     block = section[section.index("```bash") + len("```bash"):]
     block = block[:block.index("```")].replace("\\\n", " ")
     lines = [line.split("#")[0].strip() for line in block.splitlines()]
@@ -386,8 +370,8 @@ def _readme_train_command() -> list[str]:
 
 
 def test_act_policy_trains_on_exported_dataset_with_the_readme_command(exported, tmp_path):
-    """README's command verbatim, but 2 steps, in a fresh process, offline, on the CPU: a checkpoint
-    that loads with the README's call and acts on a frame of the export."""
+    """The documented command verbatim, but 2 steps, in a fresh process, offline, on the CPU: a checkpoint
+    that loads with the documented call and acts on a frame of the export."""
     import torch
     from lerobot.policies import make_pre_post_processors
     from lerobot.policies.act.modeling_act import ACTPolicy
@@ -414,7 +398,7 @@ def test_act_policy_trains_on_exported_dataset_with_the_readme_command(exported,
     policy = ACTPolicy.from_pretrained(str(last))
     assert set(policy.config.image_features) == {"observation.images.front", "observation.images.wrist"}
     preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(last))
-    frame = _open(exported["out"])[0]
+    frame = open_dataset(exported["out"], "test/lift")[0]
     batch = {k: v.unsqueeze(0) if isinstance(v, torch.Tensor) else v for k, v in frame.items()
              if k.startswith("observation.")}
     policy.eval()
@@ -451,7 +435,7 @@ def test_ctrl_c_keeps_the_saved_episodes(recorded, tmp_path):
         signal.signal(signal.SIGINT, previous)
     assert summary.interrupted and summary.episodes == 1
     assert "interrupted" in summary.line()
-    ds = _open(out, "t/int")
+    ds = open_dataset(out, "t/int")
     assert ds.num_episodes == 1 and ds.num_frames == load_episode(recorded["files"][0]).steps
     assert ds[ds.num_frames - 1]["observation.images.front"].std() > 0.05
 
@@ -472,5 +456,5 @@ def test_a_cancel_token_stops_the_export_keeping_the_saved_episodes(recorded, tm
                                                                image_size=(32, 32), progress=False,
                                                                on_episode=cancel_after_the_first), cancel=token)
     assert summary.interrupted and summary.episodes == 1 and summary.dataset_episodes == 1
-    ds = _open(out, "t/cancel")
+    ds = open_dataset(out, "t/cancel")
     assert ds.num_episodes == 1 and ds.num_frames == load_episode(recorded["files"][0]).steps

@@ -12,13 +12,13 @@ import os
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, run_cli, run_json, write_script
+from tests.support import ROOT, record_script, run_cli, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 from replay.export import export_dataset  # noqa: E402
-from replay.export.dataset import ExportOptions  # noqa: E402
+from replay.export import ExportOptions  # noqa: E402
 from replay.export.pieces import ResumeError  # noqa: E402
 from replay.export.stream import IDLE_TOLERANCE, idle_mask  # noqa: E402
 
@@ -38,8 +38,7 @@ def recorded(tmp_path_factory):
         {"duration": 0.6, "gripper": "close"},
         {"duration": 0.8, "move": [0, 0, 0.1]},
     ])
-    out = run_json("run", "--device", f"script:{script}", "--record", str(root / "rec"), "--control-hz", HZ,
-                   "--episodes", "2", "--json")
+    out = record_script(root / "rec", script, "--control-hz", HZ, "--episodes", "2")
     assert all(e["success"] for e in out["per_episode"])
     return sorted((root / "rec").glob("*.mcap"))
 
@@ -68,6 +67,7 @@ def test_idle_mask_keeps_motion_and_drops_stillness():
     assert idle_mask(moving) == [True] * 4
 
 
+@pytest.mark.e2e  # LeRobot exports, rendered
 def test_drop_idle_leaves_out_the_pause_and_keeps_frames_whole(recorded, tmp_path):
     plain = export_dataset(recorded, _opts(tmp_path / "plain"), log=lambda line: None)
     dropped = export_dataset(recorded, _opts(tmp_path / "dropped", drop_idle=True), log=lambda line: None)
@@ -105,6 +105,7 @@ def test_drop_idle_in_parallel_and_on_the_command_line(recorded, tmp_path):
     assert "Cannot enable progress bars" not in result.stderr
 
 
+@pytest.mark.e2e  # LeRobot exports, rendered, cut and resumed
 def test_a_resume_must_ask_for_the_same_drop_idle(recorded, tmp_path):
     out = tmp_path / "cut"
 
@@ -122,4 +123,4 @@ def test_a_resume_must_ask_for_the_same_drop_idle(recorded, tmp_path):
 def test_help_names_the_flag():
     result = run_cli("export", "--help")
     assert result.returncode == 0 and "--drop-idle" in result.stdout
-    assert (ROOT / "README.md").read_text().count("--drop-idle") >= 1
+    assert (ROOT / "docs" / "export.md").read_text().count("--drop-idle") >= 1

@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 
-from tests.conftest import assert_one_line_error, run_cli, run_json, write_script
+from tests.support import assert_one_line_error, column, open_dataset, record_script, run_cli, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 
-from replay.export.dataset import ExportError, ExportOptions  # noqa: E402
+from replay.export import ExportError, ExportOptions  # noqa: E402
 from replay.export import export_dataset  # noqa: E402
 from replay.export.shards import shard_count, split  # noqa: E402
 
@@ -35,8 +35,8 @@ def recorded(tmp_path_factory):
     rec = root / "moves"
     longer = write_script(root / "a.json", [{"duration": 0.8, "move": [0, 0.05, 0.02]}])
     shorter = write_script(root / "b.json", [{"duration": 0.5, "move": [0.03, 0, 0]}])
-    run_json("run", "--device", f"script:{longer}", "--record", str(rec), "--control-hz", HZ, "--episodes", "2", "--json")
-    run_json("run", "--device", f"script:{shorter}", "--record", str(rec), "--control-hz", HZ, "--seed", "3", "--json")
+    record_script(rec, longer, "--control-hz", HZ, "--episodes", "2")
+    record_script(rec, shorter, "--control-hz", HZ, "--seed", "3")
     files = sorted(rec.glob("*.mcap"))
     assert len(files) == 3
     return {"dir": rec, "files": files}
@@ -55,18 +55,8 @@ def single(recorded, tmp_path_factory):
     return {"video": video, "png": png}
 
 
-def _open(out):
-    from lerobot.datasets import LeRobotDataset
-
-    return LeRobotDataset("t/par", root=out)
-
-
-def _column(ds, key: str) -> np.ndarray:
-    return np.asarray(ds.hf_dataset.with_format("numpy")[key])
-
-
 def _assert_same_dataset(ref_out, out, exact_images: bool) -> None:
-    ref, ds = _open(ref_out), _open(out)
+    ref, ds = open_dataset(ref_out, "t/par"), open_dataset(out, "t/par")
     assert (ds.num_episodes, ds.num_frames, ds.fps) == (ref.num_episodes, ref.num_frames, ref.fps) == (3, ref.num_frames, 15)
     assert ds.meta.robot_type == ref.meta.robot_type
     assert set(ds.meta.features) == set(ref.meta.features)
@@ -78,7 +68,7 @@ def _assert_same_dataset(ref_out, out, exact_images: bool) -> None:
             for field in ("video.codec", "video.height", "video.width", "video.pix_fmt", "video.fps"):
                 assert theirs[field] == ours[field], field
     for key in VALUES:  # every frame's values, indices and timestamps
-        np.testing.assert_array_equal(_column(ds, key), _column(ref, key), err_msg=key)
+        np.testing.assert_array_equal(column(ds, key), column(ref, key), err_msg=key)
     assert list(ds.meta.tasks.index) == list(ref.meta.tasks.index)
     for i in range(3):
         a, b = ref.meta.episodes[i], ds.meta.episodes[i]

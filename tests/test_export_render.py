@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 from replay import load_episode, replay_states
-from replay.export.frames import feature_key
+from replay.features import feature_key
 from replay.render import DEFAULTS, TUNED, FastRenderer, RenderError, tune_model
-from tests.conftest import ROOT, run_json
+from tests.support import PICK, run_json
 
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
 
 @pytest.fixture(scope="module")

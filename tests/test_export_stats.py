@@ -14,9 +14,8 @@ import lerobot.datasets.compute_stats as compute_stats
 from replay import load_episode, replay_states
 from replay.export.stats import image_stats
 from replay.render import FastRenderer
-from tests.conftest import ROOT, run_json
+from tests.support import PICK, run_json
 
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
 
 @pytest.fixture(scope="module")

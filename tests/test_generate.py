@@ -14,17 +14,17 @@ import sys
 import time
 from pathlib import Path
 
-from tests.procs import alive as _alive, children_of as _children
+from tests.support import alive as _alive, children_of as _children
 
 import mujoco
 import numpy as np
 import pytest
 
 import teleop
-from recorder.annotations import read_subtasks, sidecar_path
-from replay.annotate import auto_subtasks
+from replay.subtasks.sidecar import read_subtasks, sidecar_path
+from replay.subtasks.annotate import auto_subtasks
 from teleop.generate.generator import GenerateError, GenerateOptions, generate
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json, write_script
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json, write_script
 
 SCRIPTS = {"lift": "lift_pick.json", "pick_place": "pick_place.json", "stack": "stack_pick.json", "door": "door_push.json"}
 GOALS = {"lift": 0.9, "pick_place": 0.8, "stack": 0.7}  # the success-rate goals

@@ -17,14 +17,14 @@ import sys
 import time
 from pathlib import Path
 
-from tests.procs import alive, children_of
+from tests.support import alive, children_of
 
 import numpy as np
 import pytest
 
 import teleop
 from teleop.generate.resume import JOURNAL
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json
 
 HZ = 30
 NUM = 5

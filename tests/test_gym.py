@@ -6,13 +6,11 @@ records an episode with the CLI and exports it through LeRobot.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 
 import gymnasium
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env
 
 import teleop.gym as tg
 from devices.script import ScriptDevice
@@ -20,31 +18,50 @@ from replay import load_episode
 from scenes import SceneError
 from scenes.errors import TeleopError
 from teleop.errors import EnvError
-from tests.conftest import ROOT, run_cli
-from tests.test_byo_robot import make_robot
+from tests.support import ROOT, SMALL, checked, make_robot, run_cli
 
 LIFT_SCRIPT = ROOT / "scenes" / "scripts" / "lift_pick.json"
-SMALL = (32, 32)  # width, height: tiny images keep every check fast; the code path is the same
-NOT_NORMALIZED = "recommend using a symmetric and normalized space"  # the export's actions are in real units
-
-
-def checked(env: gymnasium.Env) -> None:
-    """check_env with any Gymnasium warning but the normalized-actions advice failing the test."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(env)
-    # ResourceWarnings come from whatever the garbage collector frees meanwhile (other tests' objects)
-    problems = [str(w.message) for w in caught
-                if NOT_NORMALIZED not in str(w.message) and not issubclass(w.category, ResourceWarning)]
-    assert not problems, problems
-
-
 def test_every_builtin_scene_and_robot_pair_is_registered():
     expected = {f"teleop/{s}-{r}-v0" for r in ("panda", "ur5e", "so101") for s in ("lift", "stack", "pick_place", "door")}
     expected |= {"teleop/lift-bimanual-v0", "teleop/handover-bimanual-v0"}
     assert set(tg.ENV_IDS) == expected
     assert all(i in gymnasium.registry for i in tg.ENV_IDS)
     assert tg.register_builtin() == tg.ENV_IDS  # importing or registering again changes nothing
+
+
+MY_TASK = """name = "my_cube"
+instruction = "Lift the small cube."
+robots = ["panda", "so101"]
+success = "lifted(cube, 0.05)"
+
+[[object]]
+name = "cube"
+box = [0.02, 0.02, 0.02]
+region = {x = [-0.05, 0.05], y = [-0.05, 0.05]}
+"""
+
+
+def test_a_task_file_registers_its_own_ids_that_pass_check_env(tmp_path):
+    """Issue 38 item 8: `gymnasium.make("teleop/<file task>-panda-v0")` works once the file is registered."""
+    path = tmp_path / "my_cube.toml"
+    path.write_text(MY_TASK)
+    with pytest.raises(gymnasium.error.NameNotFound):
+        gymnasium.make("teleop/my_cube-panda-v0")
+    ids = tg.register(path)
+    assert ids == ["teleop/my_cube-panda-v0", "teleop/my_cube-so101-v0"]  # one per robot the file names
+    assert tg.register(path) == ids  # again: nothing changes
+    env = gymnasium.make(ids[0], image_size=SMALL)
+    try:
+        checked(env.unwrapped)
+        assert env.unwrapped.session.scene_name == "my_cube"
+    finally:
+        env.close()
+    clash = tmp_path / "copy.toml"  # another file of the same name would take its ids: refused in one line
+    clash.write_text(MY_TASK)
+    with pytest.raises(TeleopError, match="copy.toml: name: teleop/my_cube-panda-v0 is already"):
+        tg.register(clash)
+    with pytest.raises(TeleopError, match="no such task file"):
+        tg.register(tmp_path / "missing.toml")
 
 
 @pytest.mark.parametrize("env_id", tg.ENV_IDS)
@@ -130,7 +147,7 @@ def exported(tmp_path_factory):
     """A scripted lift episode recorded by the CLI and exported with PNG frames (exact pixels)."""
     from lerobot.datasets import LeRobotDataset  # the test command installs the lerobot extra: no skip
 
-    from replay.export.dataset import ExportOptions
+    from replay.export import ExportOptions
     from replay.export import export_dataset
 
     root = tmp_path_factory.mktemp("gym")
@@ -195,12 +212,12 @@ def lift_policy(env: gymnasium.Env) -> Callable[[dict], np.ndarray]:
     session = env.unwrapped.session
     script = ScriptDevice(LIFT_SCRIPT)
     script.start()
-    pos, quat = session.target_pose(0)
+    pos, quat = session.controller.target_pose(0)
     grip = [1.0]
 
     def act(obs) -> np.ndarray:
         nonlocal pos, quat
-        for command in script.poll(session, session.controller.dt):
+        for command in script.poll(session.controller, session.controller.dt):
             pos = command.target_pos if command.target_pos is not None else pos
             quat = command.target_quat if command.target_quat is not None else quat
             if command.gripper is not None:
@@ -233,7 +250,7 @@ def test_truncates_at_max_seconds_and_reset_without_seed_takes_the_next():
         hold = obs["observation.state"].astype(np.float64)
         flags = [env.step(hold)[2:4] for _ in range(5)]
         assert flags == [(False, False)] * 4 + [(False, True)]
-        assert env.unwrapped.session.time == pytest.approx(0.5)
+        assert env.unwrapped.session.controller.time == pytest.approx(0.5)
         assert env.reset()[1]["seed"] == 8 and env.reset(seed=2)[1]["seed"] == 2 and env.reset()[1]["seed"] == 3
     finally:
         env.close()

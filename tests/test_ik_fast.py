@@ -42,8 +42,9 @@ def _compare(ik: ArmIK, n: int, seed: int) -> dict[str, int]:
     return seen
 
 
+@pytest.mark.e2e  # 10,000 solves each way: seconds; every built-in arm is compared in the quick suite below
 def test_fast_ik_matches_mink_on_10000_targets():
-    ik = Session("lift", "panda", seed=0, control_hz=20.0).arms[0].ik
+    ik = Session("lift", "panda", seed=0, control_hz=20.0).controller.arms[0].ik
     assert ik.qp is not None, "the Panda takes the fast path"
     seen = _compare(ik, 10_000, seed=0)
     # Both regimes were exercised: limits binding and free, and the table rows present.
@@ -54,15 +55,15 @@ def test_fast_ik_matches_mink_on_10000_targets():
 def test_fast_ik_matches_mink_for_every_builtin_arm(robot):
     spec = load_robot(robot)
     session = Session("handover" if spec.bimanual else "lift", robot, seed=0, control_hz=20.0)
-    for i, arm in enumerate(session.arms):
+    for i, arm in enumerate(session.controller.arms):
         assert arm.ik.qp is not None
         _compare(arm.ik, 300, seed=i)
 
 
 def test_ik_steps_match_mink_through_arm_ik():
     """Whole solves (acceleration bound, integration, range clip) along a path: same joints as with mink."""
-    fast = Session("lift", "panda", seed=0, control_hz=30.0).arms[0].ik
-    reference = Session("lift", "panda", seed=0, control_hz=30.0).arms[0].ik
+    fast = Session("lift", "panda", seed=0, control_hz=30.0).controller.arms[0].ik
+    reference = Session("lift", "panda", seed=0, control_hz=30.0).controller.arms[0].ik
     reference.qp = None  # mink.solve_ik path
     pos, quat = fast.ee_pose()
     for i in range(300):

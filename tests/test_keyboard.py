@@ -1,15 +1,12 @@
 """Keyboard device through real pynput on a private Xvfb display, keys sent by xdotool.
 
 Needs the Debian packages xvfb and xdotool. Each module starts its own X
-server on a free display number (Xvfb -displayfd picks one) and stops it after.
+server (conftest.py's xvfb fixture) on a free display number (Xvfb -displayfd picks one) and stops it after.
 """
 
 from __future__ import annotations
 
 import os
-import select
-import shutil
-import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -19,46 +16,10 @@ import pytest
 
 from devices.base import DeviceError
 from devices.keyboard import BINDINGS, KeyboardDevice, bindings_table
+from tests.support import xdotool
 
 DT = 1 / 30
 POS, ROT = 0.2, 1.0
-
-
-@pytest.fixture(scope="module")
-def xvfb() -> Iterator[str]:
-    """A private X server; yields its DISPLAY string (":N")."""
-    missing = [tool for tool in ("Xvfb", "xdotool") if not shutil.which(tool)]
-    if missing:
-        pytest.fail(f"keyboard tests need Debian packages xvfb and xdotool (missing: {', '.join(missing)})")
-    read_end, write_end = os.pipe()
-    proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(write_end), "-nolisten", "tcp", "-noreset", "-screen", "0", "320x240x24"],
-        pass_fds=(write_end,),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    os.close(write_end)
-    number = b""
-    deadline = time.monotonic() + 15
-    while not number.endswith(b"\n") and time.monotonic() < deadline:
-        if select.select([read_end], [], [], 0.5)[0]:
-            chunk = os.read(read_end, 16)
-            if not chunk:
-                break
-            number += chunk
-    os.close(read_end)
-    if not number.strip():
-        proc.kill()
-        pytest.fail("Xvfb did not start")
-    try:
-        yield f":{number.decode().strip()}"
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.fixture
@@ -87,12 +48,6 @@ def close_and_join(device: KeyboardDevice, display: str) -> None:
         xdotool(display, "key", "Shift_L")  # bound to nothing
         listener.join(0.1)
     assert not listener.is_alive()
-
-
-def xdotool(display: str, *args: str) -> float:
-    """Send keys to the display; returns the time (monotonic) when xdotool finished."""
-    subprocess.run(["xdotool", *args], env={**os.environ, "DISPLAY": display}, check=True, timeout=10)
-    return time.monotonic()
 
 
 class View:

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from scenes.assets.make_meshes import MESHES, MJCF
-from scenes.mesh_collision import (
+from scenes.assembly.mesh_collision import (
     CoacdParams, MeshError, cache_key, cached_parts, convex_parts, parts_obj_bytes, shipped_path, user_cache_dir,
 )
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import teleop
-from replay.export.frames import ENV_STATE
+from replay.features import ENV_STATE
 from teleop.learn.evaluate import EvalOptions, evaluate
 from teleop.learn.gym_env import TeleopEnv
 from teleop.learn.policy import ScriptedPolicy
@@ -81,7 +81,7 @@ def test_a_fixed_object_placed_per_seed_is_in_the_state():
             obs, _ = env.reset(seed=seed)
             assert env.objects is not None and env.objects.names == ["cube", "bin"]
             bin_state = np.asarray(obs[ENV_STATE][7:], dtype=np.float64)
-            model, data = env.session.model, env.session.data
+            model, data = env.session.controller.model, env.session.controller.data
             expected = _base_frame(data, model.body("link0").id, model.body("bin").id)
             np.testing.assert_allclose(bin_state, expected, atol=1e-5)
             seen.append(bin_state[:3])

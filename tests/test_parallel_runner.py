@@ -1,4 +1,4 @@
-"""Issue 19 item 4: the one parallel runner (replay/parallel/runner.py), with real spawned workers.
+"""Issue 19 item 4: the one parallel runner (scenes/workers/runner.py), with real spawned workers.
 
 Generation and export use it (tests/test_generate.py, tests/test_export_parallel.py run
 them end to end, Ray included); here its own promises: results in submission order
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from replay.parallel import Runner
+from scenes.workers import Runner
 
 # -- tasks (module level: the spawned workers import this module to find them) -------------
 
@@ -115,6 +115,7 @@ def _big_result(marker: str, mbytes: int) -> bytes:
     return data
 
 
+@pytest.mark.e2e  # five pools of worker processes, 256 MB results, workers terminated mid-send: many seconds
 def test_stop_while_a_result_is_being_sent_back_does_not_hang(tmp_path):
     """A worker terminated half-way through sending a result leaves part of a message in the result pipe;
     the pool's reader must not wait for the rest forever (generate's Ctrl-C would never exit).

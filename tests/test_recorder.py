@@ -19,10 +19,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from bench.recording import episode_meta, pusher_xml, record_pusher_episode
 from recorder import EpisodeWriter, RecorderError, StepRecord, next_episode_index
 from replay import load_episode, resimulate
-from tests.conftest import ROOT, run_cli, run_json
+from tests.support import ROOT, episode_meta, pusher_xml, record_pusher_episode, run_cli, run_json
 
 STEPS = 160
 META_KEYS = (
@@ -208,7 +207,7 @@ _UNCLOSED = textwrap.dedent(
     """
     import sys
     from pathlib import Path
-    import bench.recording as b
+    import tests.support as b
 
     def boom(k, data):
         if k == 40:
@@ -235,7 +234,7 @@ _RECORD_FOREVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    import bench.recording as b
+    import tests.support as b
 
     period = 0.004
     start = time.perf_counter()

@@ -6,9 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 
-from tests.conftest import ROOT, run_json
+from tests.support import PICK, run_json
 
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 
 
 def test_recorded_pick_replays_bit_exact_in_fresh_processes(tmp_path: Path):
@@ -46,7 +45,7 @@ def test_session_rows_hold_what_each_tick_did(tmp_path: Path):
     session = Session("lift", "panda", seed=2, control_hz=30)
     recorder = Recorder(session, tmp_path, ("mcap", "hdf5"), verify="off")
     recorder.start()
-    site = session.arms[0].site_id
+    site = session.controller.arms[0].site_id
     steps = BLOCK_ROWS + 40
     poses, targets, ctrls = [], [], []
     for k in range(steps):
@@ -55,12 +54,12 @@ def test_session_rows_hold_what_each_tick_did(tmp_path: Path):
             cmds.append(Command(gripper="close", source="test"))
         session.step(cmds)
         quat = np.empty(4)
-        mujoco.mju_mat2Quat(quat, session.data.site_xmat[site])
-        poses.append(np.concatenate([session.data.site_xpos[site], quat]))
-        targets.append(np.concatenate(session.target_pose(0)))
-        ctrls.append(session.data.ctrl.copy())
+        mujoco.mju_mat2Quat(quat, session.controller.data.site_xmat[site])
+        poses.append(np.concatenate([session.controller.data.site_xpos[site], quat]))
+        targets.append(np.concatenate(session.controller.target_pose(0)))
+        ctrls.append(session.controller.data.ctrl.copy())
     paths = recorder.save()
-    nq, nv = session.model.nq, session.model.nv
+    nq, nv = session.controller.model.nq, session.controller.model.nv
     for path in paths:
         ep = load_episode(path)
         assert ep.steps == steps

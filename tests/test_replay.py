@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from bench.recording import record_pusher_episode
 from replay.convert import write_episode
 from replay import EpisodeError, find_episodes, load_episode, replay_states, resimulate
 from teleop.cli.entry import main
-from tests.conftest import run_cli, run_json
+from tests.support import record_pusher_episode, run_cli, run_json
 
 STEPS = 120
 

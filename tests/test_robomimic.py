@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from replay import load_episode, resimulate
-from tests.conftest import ROOT, run_json
+from tests.support import PICK, record_script, run_json
 
 # robomimic 0.3.0 is installed by `./run.sh test` (pip --no-deps: its egl_probe dependency needs a compiler).
 import robomimic.utils.obs_utils as ObsUtils
@@ -28,8 +28,7 @@ PER_EPISODE = OUTCOME | {"start_time", "episode_index", "wall_time", "teleop_ver
 def recorded(tmp_path_factory) -> dict[str, Path]:
     """A successful scripted lift, recorded to both formats; the MCAP also converted to HDF5."""
     directory = tmp_path_factory.mktemp("robomimic")
-    out = run_json("run", "--device", f"script:{ROOT / 'scenes/scripts/lift_pick.json'}", "--record", str(directory),
-                   "--format", "both", "--no-verify", "--json")
+    out = record_script(directory, PICK, "--format", "both", "--no-verify")
     assert out["success"] is True
     paths = {Path(p).suffix[1:]: Path(p) for p in out["files"]}
     converted = directory / "converted.hdf5"
@@ -142,7 +141,7 @@ def test_last_next_obs_is_repeated_when_the_replay_does_not_reproduce_the_record
 
 @pytest.mark.parametrize("steps", [0, 1])
 def test_episodes_too_short_to_check_still_load(tmp_path, steps):
-    from bench.recording import record_pusher_episode
+    from tests.support import record_pusher_episode
 
     paths = record_pusher_episode(tmp_path, 0, steps=steps, formats=("hdf5",))
     ep = load_episode(paths[0])

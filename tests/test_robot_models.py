@@ -225,7 +225,7 @@ def test_grasp_holds_a_cube_at_the_ee_site(name: str, physics: str) -> None:
     """Close on a free cube that starts at the ee site (gravity on from the start)."""
     robot = ROBOTS[name]
     model, data, box = with_box(name)
-    if physics == "arena":  # the options scenes/arena.py sets
+    if physics == "arena":  # the options scenes/assembly/arena.py sets
         model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
         model.opt.impratio = 10.0
     assert data.ncon == 0, "the cube starts clear of the open gripper"

@@ -28,22 +28,22 @@ def test_every_single_arm_robot_has_the_four_single_arm_tasks():
 @pytest.mark.parametrize("robot,task", PAIRS)
 def test_scene_compiles_and_runs_two_seconds(robot, task):
     session = Session(task, robot, seed=3)
-    model = session.model
+    model = session.controller.model
     assert {"front", "overhead"} <= set(session.scene.cameras)
     wrists = [c for c in session.scene.cameras if c.endswith("wrist")]
-    assert len(wrists) == session.n_arms
+    assert len(wrists) == session.controller.n_arms
     for arm in session.scene.arms:
         assert model.site(arm.ee_site).id >= 0
     steps = int(round(2.0 / session.dt))
     for _ in range(steps):
         session.step([])
-    assert session.time == pytest.approx(2.0, abs=1e-6)
-    assert np.all(np.isfinite(session.data.qpos)) and np.all(np.isfinite(session.data.qvel))
+    assert session.controller.time == pytest.approx(2.0, abs=1e-6)
+    assert np.all(np.isfinite(session.controller.data.qpos)) and np.all(np.isfinite(session.controller.data.qvel))
     # Holding home: the arm does not sag or drift.
-    for arm_state, arm in zip(session.arms, session.scene.arms):
-        q = np.array([session.data.qpos[model.joint(j).qposadr[0]] for j in arm.joints])
+    for arm_state, arm in zip(session.controller.arms, session.scene.arms):
+        q = np.array([session.controller.data.qpos[model.joint(j).qposadr[0]] for j in arm.joints])
         assert np.max(np.abs(q - np.array(arm.home))) < 0.02, (robot, task)
-    assert session.success() is False
+    assert session.controller.success() is False
 
 
 def test_same_seed_same_scene_and_seeds_differ():

@@ -19,12 +19,12 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from bench.recording import record_pusher_episode
 from recorder.format import META_END_NAME, META_NAME, SCHEMA_VERSION, EpisodeMeta
 from replay import load_episode, resimulate
 from replay.convert import convert_episode
-from replay.episode import summarize
+from replay.summary import summarize
 from teleop.cli.entry import main
+from tests.support import record_pusher_episode
 
 STEPS = 60
 ROW_FIELDS = ("time", "wall_time", "state", "ctrl", "ee_target", "ee_pose", "qpos", "qvel", "gripper")

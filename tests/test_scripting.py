@@ -1,4 +1,4 @@
-"""The README's "Scripting" example runs verbatim, and `import teleop` offers what it promises."""
+"""The "Scripting" example of docs/scripting.md runs verbatim, and `import teleop` offers what it promises."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 import pytest
 
 import teleop
-from tests.conftest import ROOT
+from tests.support import ROOT
 
 PUBLIC = (
     "Session", "ScriptDevice", "Recorder", "run_episode", "load_episode", "resimulate", "export_lerobot", "serve",
@@ -21,10 +21,10 @@ PUBLIC = (
 
 
 def readme_example() -> str:
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "scripting.md").read_text()
     section = text.split("\n## Scripting\n", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"```python\n(.*?)```", section, re.S)
-    assert blocks, "README's Scripting section has no python block"
+    assert blocks, "docs/scripting.md's Scripting section has no python block"
     return blocks[0]
 
 
@@ -70,6 +70,7 @@ def test_recorder_keeps_an_episode_cut_short_by_an_exception(tmp_path):
     assert teleop.resimulate(episode).bit_exact
 
 
+@pytest.mark.e2e  # a LeRobot export (the first import of LeRobot alone takes seconds)
 def test_export_lerobot_takes_the_options_object(tmp_path):
     """Every export option reaches `teleop.export_lerobot`: the options object, its fields as keywords
     (which win over it), and nothing else."""

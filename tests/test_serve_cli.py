@@ -34,8 +34,8 @@ def test_port_in_use_is_a_usage_error():
 
 @pytest.mark.parametrize("args, words", [
     (("--device", "joystick"), "unknown device"),
-    (("--scene", "nowhere"), "unknown scene"),
-    (("--port", "0"), "--port"),
+    pytest.param(("--scene", "nowhere"), "unknown scene", marks=pytest.mark.e2e),  # a fresh `teleop` each: the first
+    pytest.param(("--port", "0"), "--port", marks=pytest.mark.e2e),  # case runs in the quick suite, these in e2e
 ])
 def test_bad_flags_are_one_line_errors(args, words):
     result = serve("--port", str(headless.free_port()), *args) if "--port" not in args else serve(*args)
@@ -71,6 +71,7 @@ def test_ctrl_c_saves_the_episode_in_progress_as_incomplete(tmp_path):
     assert episode.meta.complete is False and episode.steps > 15 and not episode.truncated
 
 
+@pytest.mark.e2e  # starts a `teleop serve` server
 def test_sigint_without_a_browser_exits_cleanly(tmp_path):
     server = headless.ServeProcess(["--device", "gizmo"], tmp_path)
     time.sleep(0.5)

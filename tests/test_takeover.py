@@ -20,7 +20,7 @@ from devices.command import Command
 from devices.gizmo import GizmoDevice
 from recorder.format import CONTROL_HUMAN, CONTROL_POLICY
 from replay import load_episode
-from replay.export.dataset import ExportOptions
+from replay.export import ExportOptions
 from replay.export import export_dataset
 from teleop.learn.gym_env import TeleopEnv
 from teleop.control.loop import run_episode
@@ -29,7 +29,7 @@ from teleop.learn.takeover import Takeover, moves_arm
 from teleop.web.app import STATUS_PERIOD_S
 from teleop.web.panel import PanelDevice
 from tests.browser import free_port
-from tests.conftest import ROOT, assert_one_line_error, run_cli
+from tests.support import ROOT, assert_one_line_error, run_cli
 
 RISE_M = 0.05  # the scripted policy lifts its target this much, then holds
 POLICY_SCRIPT = {"steps": [{"duration": 1.0, "move": [0, 0, RISE_M]}, {"duration": 0.5}]}
@@ -62,16 +62,16 @@ def taken_over(script, tmp_path_factory):
     with teleop.Recorder(session, out / "eps", verify="sync", source="policy",
                          provenance={"policy": "script:rise.json"}) as rec:
         takeover = Takeover.for_session(session, ScriptedPolicy(script))
-        start_target = session.target_pose()[0].copy()
+        start_target = session.controller.target_pose()[0].copy()
         rec.start()
         run_episode(session, devices, max_steps=30, record=False, steer=takeover.steer)
-        policy_target = session.target_pose()[0].copy()
+        policy_target = session.controller.target_pose()[0].copy()
         assert takeover.driver == "policy" and takeover.policy_steps == 30
 
         grab = policy_target + np.array([0.04, 0.0, 0.0])
-        gizmo.push(0, grab, session.target_pose()[1], "start")
+        gizmo.push(0, grab, session.controller.target_pose()[1], "start")
         run_episode(session, devices, max_steps=20, record=False, steer=takeover.steer)
-        operator_target = session.target_pose()[0].copy()
+        operator_target = session.controller.target_pose()[0].copy()
         assert takeover.driver == "operator" and takeover.takeovers == 1
 
         panel.push(Command(events=("policy",)))  # the panel's button and the key `p` send this
@@ -80,7 +80,7 @@ def taken_over(script, tmp_path_factory):
         rec.save()
         takeover.close()
     return {"file": rec.paths[0], "takeover": takeover, "start": start_target, "policy": policy_target,
-            "grab": grab, "operator": operator_target, "end": session.target_pose()[0].copy(),
+            "grab": grab, "operator": operator_target, "end": session.controller.target_pose()[0].copy(),
             "verified": dict(rec.verified), "out": out}
 
 
@@ -151,7 +151,7 @@ def test_a_scripted_policy_needs_ee_actions_and_a_failing_policy_hands_over(scri
         commands, ctrl = takeover.steer(session, [])
         assert commands == [] and ctrl is None
         assert takeover.driver == "operator" and takeover.problem == "the network produced NaNs"
-        assert any("policy stopped" in m for m in session.messages)
+        assert any("policy stopped" in m for m in session.stats.messages)
         takeover.request("policy")  # a broken policy cannot be handed control again
         takeover.steer(session, [])
         assert takeover.driver == "operator"
@@ -179,7 +179,7 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
     import tests.browser as headless
 
     record = tmp_path / "eps"
-    home_z = teleop.Session("lift", "panda", seed=0).target_pose()[0][2]
+    home_z = teleop.Session("lift", "panda", seed=0).controller.target_pose()[0][2]
     server = headless.ServeProcess(["--policy", f"script:{script}", "--record", str(record), "--device", "gizmo"], tmp_path)
     try:
         with sync_playwright() as pw:
@@ -238,7 +238,7 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
 
 
 def test_inspect_shows_who_drove(taken_over):
-    from tests.conftest import run_json
+    from tests.support import run_json
 
     info = run_json("inspect", str(taken_over["file"]), "--json")
     assert info["source"] == "policy" and info["policy"] == "script:rise.json"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.conftest import ROOT, run_json
+from tests.support import ROOT, run_json
 
 CASES = [
     ("stack", "panda", "stack_pick.json"),
@@ -16,7 +16,7 @@ CASES = [
 
 
 @pytest.mark.parametrize("scene,robot,script", CASES)
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.e2e)])  # a whole episode in a fresh process each
 def test_example_script_succeeds(scene, robot, script, seed):
     out = run_json(
         "run", "--device", f"script:{ROOT / 'scenes' / 'scripts' / script}",

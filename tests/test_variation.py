@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, assert_one_line_error, run_cli, run_json
+from tests.support import PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_json
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -23,23 +23,22 @@ os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 from replay import load_episode  # noqa: E402
 from replay.engine import verify_file  # noqa: E402
 from replay.export import export_dataset  # noqa: E402
-from replay.export.dataset import ExportOptions  # noqa: E402
+from replay.export import ExportOptions  # noqa: E402
 from replay.render import FastRenderer  # noqa: E402
 from scenes import build_scene  # noqa: E402
-from scenes.task_file import TaskFileError, load_task_file  # noqa: E402
-from scenes.textures import png_bytes, procedural  # noqa: E402
-from scenes.variation import (  # noqa: E402
+from scenes.tasks.file_task import TaskFileError, load_task_file  # noqa: E402
+from scenes.vary.textures import png_bytes, procedural  # noqa: E402
+from scenes.vary.variation import (  # noqa: E402
     DEFAULT_RANGES, GROUPS, HELD_OUT_BASE, LOOKS_KINDS, Variation, VariationError, eval_look_seed, parse_ranges, parse_vary,
     training_look_seed,
 )
-from scenes.vary_looks import apply_looks, sample_looks  # noqa: E402
+from scenes.vary.looks import apply_looks, sample_looks  # noqa: E402
 from teleop.learn.evaluate import EvalOptions, evaluate  # noqa: E402
 from teleop.learn.policy import ScriptedPolicy  # noqa: E402
 
 pytestmark = pytest.mark.e2e  # real generate, export and eval runs (LeRobot) in its fixtures
 
 HZ = "15"
-PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"
 FRONT = "observation.images.front"
 PHYSICS = ("size", "mass", "friction", "damping", "distractors")
 
@@ -48,7 +47,7 @@ PHYSICS = ("size", "mass", "friction", "damping", "distractors")
 def recorded(tmp_path_factory):
     """Two scripted lift picks (seeds 0, 1), recorded as they always were (nothing varied)."""
     rec = tmp_path_factory.mktemp("episodes") / "lift"
-    out = run_json("run", "--device", f"script:{PICK}", "--record", str(rec), "--control-hz", HZ, "--episodes", "2", "--json")
+    out = record_script(rec, PICK, "--control-hz", HZ, "--episodes", "2")
     assert all(e["success"] for e in out["per_episode"])
     return sorted(rec.glob("*.mcap"))
 
@@ -61,16 +60,6 @@ def generated(recorded, tmp_path_factory):
                       "--vary", "physics,distractors", "--json")
     assert report["successes"] == 3
     return sorted(out.glob("*.mcap"))
-
-
-def _open(out, repo_id="t/var"):
-    from lerobot.datasets import LeRobotDataset
-
-    return LeRobotDataset(repo_id, root=out)
-
-
-def _column(ds, key: str) -> np.ndarray:
-    return np.asarray(ds.hf_dataset.with_format("numpy")[key])
 
 
 def _variation(ds) -> list[dict]:
@@ -171,12 +160,12 @@ def test_looks_export_loads_in_lerobot_with_equal_actions_and_other_images(recor
                      "--looks-seed", "5")
     assert result.returncode == 0, result.stderr[-2000:]
     assert "exported 6 episodes" in result.stdout and "3 looks of each recorded episode" in result.stdout
-    ds = _open(out)
+    ds = open_dataset(out, "t/var")
     assert ds.num_episodes == 6
     eps = [load_episode(p) for p in recorded]
     steps = [e.steps for e in eps]
     assert ds.num_frames == 3 * sum(steps)
-    action, state = _column(ds, "action"), _column(ds, "observation.state")
+    action, state = column(ds, "action"), column(ds, "observation.state")
     meta = _variation(ds)
     start = 0
     for i, ep in enumerate(eps):
@@ -214,7 +203,7 @@ def test_one_look_and_nothing_varied_is_the_plain_export(recorded, tmp_path):
     assert len(a[FRONT]) == len(b[FRONT]) > 0 and all(image["bytes"] for image in a[FRONT])
     assert a == b  # image for image (PNG bytes), value for value
     assert (tmp_path / "plain" / "meta" / "stats.json").read_bytes() == (tmp_path / "same" / "meta" / "stats.json").read_bytes()
-    assert "variation" not in _open(tmp_path / "plain").meta.episodes.column_names
+    assert "variation" not in open_dataset(tmp_path / "plain", "t/var").meta.episodes.column_names
 
 
 def test_parallel_export_shards_the_variants(recorded, tmp_path):
@@ -222,10 +211,10 @@ def test_parallel_export_shards_the_variants(recorded, tmp_path):
     serial = export_dataset([recorded[0].parent], _opts(tmp_path / "one", looks=2, variation=v), log=lambda line: None)
     parallel = export_dataset([recorded[0].parent], _opts(tmp_path / "two", looks=2, variation=v, workers=2), log=lambda line: None)
     assert serial.episodes == parallel.episodes == 4
-    a, b = _open(tmp_path / "one"), _open(tmp_path / "two")
+    a, b = open_dataset(tmp_path / "one", "t/var"), open_dataset(tmp_path / "two", "t/var")
     assert _variation(a) == _variation(b)  # the same variants in the same order, whichever shard rendered them
     for key in ("action", "observation.state", "episode_index", "frame_index"):
-        assert np.array_equal(_column(a, key), _column(b, key))
+        assert np.array_equal(column(a, key), column(b, key))
 
 
 def test_a_cut_varied_export_resumes_with_the_same_looks_only(recorded, tmp_path):
@@ -246,13 +235,13 @@ def test_a_cut_varied_export_resumes_with_the_same_looks_only(recorded, tmp_path
     assert done.resumed_from == 1 and done.episodes == 3
     whole = export_dataset([recorded[0].parent], _opts(tmp_path / "whole", looks=2, variation=v), log=lambda line: None)
     assert whole.episodes == 4
-    assert _variation(_open(tmp_path / "cut")) == _variation(_open(tmp_path / "whole"))
+    assert _variation(open_dataset(tmp_path / "cut", "t/var")) == _variation(open_dataset(tmp_path / "whole", "t/var"))
 
 
 def test_physics_varied_episodes_export_with_their_parameters(generated, tmp_path):
     out = tmp_path / "gen"
     export_dataset(generated, _opts(out), log=lambda line: None)
-    ds = _open(out)
+    ds = open_dataset(out, "t/var")
     meta = _variation(ds)
     for v, path in zip(meta, generated):
         assert v["look_index"] is None and v["looks"] is None
@@ -370,12 +359,12 @@ def test_the_readme_table_holds_the_defaults_and_every_session_command_takes_the
 
     from teleop.cli.entry import build_parser
 
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("### Variation"):]
+    text = (ROOT / "docs" / "variation.md").read_text()
+    section = text[text.index("# Variation"):]
     block = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
     table = tomllib.loads(block)["variation"]
     table.pop("texture_files")
-    assert parse_ranges(table, "README") == DEFAULT_RANGES  # the documented values are the ones used
+    assert parse_ranges(table, "docs/variation.md") == DEFAULT_RANGES  # the documented values are the ones used
     assert "docs/looks_preview.png" in section and (ROOT / "docs" / "looks_preview.png").is_file()
     parser = build_parser()
     for command in (["serve"], ["run", "--device", "keyboard"], ["generate", "x", "--out", "y", "--num", "1"]):

@@ -18,7 +18,6 @@ import html
 import importlib
 import inspect
 import re
-import time
 import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from teleop.web.viser_compat import (
     wrapping_serve,
 )
 from tests import browser as headless
+from tests.support import wait_until
 
 VISER_PROTOCOL = f"viser-v{viser.__version__}"
 CLIENT_BUILD = Path(viser.__file__).resolve().parent / "client" / "build"
@@ -125,16 +125,6 @@ def _get(url: str, **headers: str) -> tuple[dict, bytes]:
         return dict(response.headers.items()), response.read()
 
 
-def _wait(condition, what: str, timeout_s: float = 15.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    pytest.fail(f"timed out waiting for {what}")
-
-
 # -- the server side ------------------------------------------------------------------
 def test_viser_starts_its_server_through_websockets_serve_which_we_wrap(served):
     assert served.starts, broken(
@@ -198,7 +188,7 @@ def test_our_message_size_limit_closes_a_connection_that_sends_a_bigger_frame(se
     why = "limit_message_size: the input channel's frames would be bounded by viser's 50 MB, not MAX_FRAME"
     with connect(served.url.replace("http://", "ws://") + LIMIT_PATH, open_timeout=10) as ws:
         ws.send(b"x" * (LIMIT_BYTES // 2))
-        _wait(lambda: served.limit_settable, "our handler to take the connection")
+        wait_until(lambda: served.limit_settable, 15.0, "our handler to take the connection")
         assert served.limit_settable == [True], broken(
             "a websockets ServerConnection has no protocol.max_message_size to set", why)
         ws.send(b"x" * (LIMIT_BYTES * 4))
@@ -208,7 +198,7 @@ def test_our_message_size_limit_closes_a_connection_that_sends_a_bigger_frame(se
             pass
         else:
             pytest.fail(broken("a frame over protocol.max_message_size did not close the connection", why))
-    _wait(lambda: served.limit_closed, "the limited connection to close")
+    wait_until(lambda: served.limit_closed, 15.0, "the limited connection to close")
     assert served.limit_closed == [1009], broken(
         f"a frame over the limit closed with code {served.limit_closed}, not 1009 (message too big)",
         "the input channel's frame limit")
@@ -285,8 +275,8 @@ def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(s
                 f"{ratio:.2f} device pixels per CSS pixel, not 0.5",
                 "view_quality's lighter view for software WebGL")
             # A script sent to this page's client runs in the page.
-            client = _wait(lambda: [c for i, c in served.server.get_clients().items() if i not in before],
-                           "the page's client")[-1]
+            client = wait_until(lambda: [c for i, c in served.server.get_clients().items() if i not in before],
+                                15.0, "the page's client")[-1]
             run_javascript(client, "window.__contractRan = 6 * 7;")
             try:
                 page.wait_for_function("window.__contractRan === 42", timeout=15000)

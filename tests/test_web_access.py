@@ -26,7 +26,7 @@ from teleop.web.access import (
     TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token, with_head_script,
 )
 from tests import browser as headless
-from tests.conftest import assert_one_line_error, run_cli
+from tests.support import assert_one_line_error, run_cli
 
 PAGE_SIZE = (1100, 720)
 VISER_PROTOCOL = f"viser-v{viser.__version__}"
@@ -86,8 +86,8 @@ def test_cross_origin_pages_are_told_apart():
 
 @pytest.mark.parametrize("args, env, words", [
     (("--token", "abcdefgh", "--no-token"), {}, "contradict"),
-    (("--token", "abc"), {}, "--token"),
-    ((), {TOKEN_ENV: "not a token"}, TOKEN_ENV),
+    pytest.param(("--token", "abc"), {}, "--token", marks=pytest.mark.e2e),  # a fresh `teleop` each: the first case
+    pytest.param((), {TOKEN_ENV: "not a token"}, TOKEN_ENV, marks=pytest.mark.e2e),  # runs in the quick suite
 ])
 def test_serve_rejects_bad_token_flags_in_one_line(args, env, words):
     result = run_cli("serve", "--port", str(headless.free_port()), *args, env=env, timeout=120)
@@ -118,12 +118,14 @@ def _get(url: str, **headers: str) -> tuple[int, dict, bytes]:
         return exc.code, dict(exc.headers), exc.read()
 
 
+@pytest.mark.e2e  # this module's `teleop serve` server on 0.0.0.0
 def test_the_printed_url_carries_a_random_token_and_the_status_says_one_is_needed(server, token):
     assert TOKEN_PATTERN.fullmatch(token) and len(token) >= 20
     assert server.status()["token_required"] is True
     assert "warning" not in server.log()  # a token, so nothing to warn about
 
 
+@pytest.mark.e2e  # this module's `teleop serve` server on 0.0.0.0
 def test_http_without_the_token_is_403_and_with_it_200(server, token):
     status, _, body = _get(server.url + "/")
     assert status == 403 and b"token" in body
@@ -140,6 +142,7 @@ async def _ws_first_message(url: str, **kwargs) -> bytes | str:
         return await asyncio.wait_for(ws.recv(), 10)
 
 
+@pytest.mark.e2e  # this module's `teleop serve` server on 0.0.0.0
 def test_the_websocket_without_the_token_is_refused_and_with_it_accepted(server, token):
     ws_url = server.url.replace("http://", "ws://")
     evil = {"origin": "https://evil.example"}  # another site's page, even with the token (viser's websocket too)
@@ -192,6 +195,7 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
         page.close()
 
 
+@pytest.mark.e2e  # a `teleop serve` server of its own for each case
 @pytest.mark.parametrize("args, needs_token", [
     (("--host", "0.0.0.0", "--no-token"), False),  # a trusted network: open, with a warning
     (("--token", "loopback-secret"), True),  # loopback, but a token was given: it is required

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from recorder.annotations import Subtask
-from replay.subtask_edit import EditRefused, SubtaskEdits, even_split
+from replay.subtasks.sidecar import Subtask
+from replay.subtasks.edit import EditRefused, SubtaskEdits, even_split
 from teleop.web.replay_subtasks import step_from_browser, timeline_html
 from tests import browser as headless
 

@@ -96,7 +96,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
     try:
         time.sleep(0.5)
         app.panel_device.push(Command(events=("start",)))
-        pos, quat = session.target_pose(0)
+        pos, quat = session.controller.target_pose(0)
         for i in range(30):
             gizmo.push(0, pos + [0.003 * i, 0, -0.002 * i], quat)
             time.sleep(1 / 30)

@@ -19,6 +19,7 @@ from teleop.web.input_messages import (
     MAX_BYTES, Hello, Key, Rejected, ReleaseAll, View, binding_name, browser_keys, parse,
 )
 from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys
+from tests.support import wait_until
 
 
 def test_valid_messages_parse_into_their_types():
@@ -166,13 +167,6 @@ def channel():
     thread.join(5)
 
 
-def _wait(predicate, timeout=5.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not predicate():
-        time.sleep(0.02)
-    return predicate()
-
-
 def test_the_channel_passes_valid_messages_and_drops_and_counts_the_rest(channel):
     chan, listener, url = channel
 
@@ -185,7 +179,7 @@ def test_the_channel_passes_valid_messages_and_drops_and_counts_the_rest(channel
             await asyncio.sleep(0.3)
 
     asyncio.run(talk())
-    assert _wait(lambda: ("closed", 1) in listener.events)
+    assert wait_until(lambda: ("closed", 1) in listener.events, 5.0)
     received = [e[1] for e in listener.events if e[0] == "received"]
     assert received == [Key("w", True), Key("w", False)]
     assert chan.dropped == len(MALFORMED) and chan.accepted == 2 and chan.last_drop
@@ -205,9 +199,9 @@ def test_the_channel_limits_rate_and_frame_size(channel):
 
     code = asyncio.run(flood())
     assert code == 1009  # message too big: the connection is closed...
-    assert _wait(lambda: chan.dropped >= 150)
+    assert wait_until(lambda: chan.dropped >= 150, 5.0)
     assert chan.accepted <= BURST + input_channel.RATE * 2  # ...and the flood was mostly dropped
-    assert _wait(lambda: chan.connections == 0)
+    assert wait_until(lambda: chan.connections == 0, 5.0)
     assert "frame over" in chan.last_drop
 
 
@@ -222,6 +216,6 @@ def test_a_page_that_stops_answering_pings_is_quiet(channel):
             await asyncio.sleep(0.5)
 
     asyncio.run(stall())
-    assert _wait(lambda: ("closed", 1) in listener.events)
+    assert wait_until(lambda: ("closed", 1) in listener.events, 5.0)
     assert ("quiet", 1) in listener.events
     assert listener.events.index(("quiet", 1)) < listener.events.index(("closed", 1))

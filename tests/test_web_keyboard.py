@@ -187,6 +187,7 @@ async def _hold_then(url: str, then: str) -> None:
             await asyncio.sleep(0.2)
 
 
+@pytest.mark.e2e  # starts this module's `teleop serve` server, and waits out a stalled connection
 @pytest.mark.parametrize("then, reason", [("close", "closed"), ("stall", "quiet")])
 def test_a_connection_that_closes_or_stalls_lets_go_of_its_keys(server, then, reason):
     before = settled(server, "a still arm")

@@ -36,6 +36,7 @@ def episode(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.e2e  # records an episode, then runs `teleop replay --serve`, each in a fresh process
 def test_replay_serve_port_in_use(episode):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

@@ -28,7 +28,7 @@ from websockets.exceptions import InvalidStatus
 from teleop.web.access import TOKEN_ENV, TOKEN_PATTERN
 from teleop.web.net import exposure_warning, page_url, remote_hint
 from tests import browser as headless
-from tests.conftest import ROOT, assert_one_line_error, run_cli
+from tests.support import ROOT, assert_one_line_error, run_cli
 
 VISER_PROTOCOL = f"viser-v{viser.__version__}"
 SCRIPT = {"steps": [
@@ -72,9 +72,9 @@ def episode(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("args, env, words", [
     (("--serve", "--token", "abcdefgh", "--no-token"), {}, "contradict"),
-    (("--serve", "--token", "abc"), {}, "--token"),
-    (("--serve",), {TOKEN_ENV: "not a token"}, TOKEN_ENV),
-    (("--token", "abcdefgh"), {}, "--serve"),  # the token is the viewer's
+    pytest.param(("--serve", "--token", "abc"), {}, "--token", marks=pytest.mark.e2e),  # a fresh `teleop` each: the
+    pytest.param(("--serve",), {TOKEN_ENV: "not a token"}, TOKEN_ENV, marks=pytest.mark.e2e),  # first case runs in
+    pytest.param(("--token", "abcdefgh"), {}, "--serve", marks=pytest.mark.e2e),  # the quick suite; the token is the viewer's
 ])
 def test_replay_rejects_bad_token_flags_in_one_line(episode, args, env, words):
     result = run_cli("replay", str(episode), "--port", str(headless.free_port()), *args, env=env, timeout=120)
@@ -141,12 +141,14 @@ async def _ws_first_message(url: str, **kwargs) -> bytes | str:
         return await asyncio.wait_for(ws.recv(), 10)
 
 
+@pytest.mark.e2e  # this module's `teleop replay --serve` viewer
 def test_off_loopback_the_viewer_prints_a_random_token_and_warns_of_nothing(viewer, token):
     assert TOKEN_PATTERN.fullmatch(token) and len(token) >= 20
     assert "warning" not in viewer.log()
     assert "from another machine" in viewer.log()
 
 
+@pytest.mark.e2e  # this module's `teleop replay --serve` viewer
 def test_viewer_http_without_the_token_is_403_and_with_it_200(viewer, token):
     status, _, body = _get(viewer.url + "/")
     assert status == 403 and b"token" in body
@@ -158,6 +160,7 @@ def test_viewer_http_without_the_token_is_403_and_with_it_200(viewer, token):
     assert _get(viewer.url + "/", Cookie=f"teleop_token_{viewer.port}=nope-nope-nope")[0] == 403
 
 
+@pytest.mark.e2e  # this module's `teleop replay --serve` viewer
 def test_viewer_websocket_is_refused_without_the_token_or_from_another_site(viewer, token):
     ws_url = viewer.url.replace("http://", "ws://")
     refused = [
@@ -197,6 +200,7 @@ def test_a_browser_needs_the_token_to_see_the_episode_and_save_its_subtasks(view
     assert doc["by"] == "human" and doc["subtasks"][0]["start"] == 0
 
 
+@pytest.mark.e2e  # a `teleop replay --serve` viewer of its own for each case
 @pytest.mark.parametrize("args, needs_token", [
     (("--host", "0.0.0.0", "--no-token"), False),  # a trusted network: open, with one warning line
     (("--token", "loopback-secret"), True),  # loopback, but a token was given: it is required

@@ -213,6 +213,7 @@ def _addresses() -> list[str]:
     return out
 
 
+@pytest.mark.e2e  # this module's `teleop serve` server
 def test_listens_on_loopback_only(server):
     with socket.create_connection(("127.0.0.1", server.port), timeout=3):
         pass
@@ -222,6 +223,7 @@ def test_listens_on_loopback_only(server):
                 pass
 
 
+@pytest.mark.e2e  # this module's `teleop serve` server
 def test_realtime_with_browsers(server):
     status = server.status()
     assert status["error"] is None

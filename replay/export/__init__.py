@@ -1,17 +1,28 @@
-"""Recorded episodes into LeRobot datasets: frames, rendering stream, image statistics, finalized pieces,
-parallel shards. `export_dataset` is the one entry: one process (dataset.py, in pieces) or shards (shards.py)."""
+"""Recorded episodes into LeRobot datasets. `export_dataset` is the one entry: one process (serial.py, in
+pieces) or shards (shards.py).
+
+- options.py: `ExportOptions` (the flags) and their checks, `ExportSummary`;
+- choose.py: which episodes, cameras and optional features; codecs.py: video encoder and decoder;
+- lerobot_dataset.py: opening the dataset (new, or appended to); lerobot_io.py: importing LeRobot;
+- serial.py: the loop; stream.py: replay and rendering in a thread; stats.py: image statistics;
+- pieces.py: finalized, resumable pieces; shards.py: parallel shards; looks.py: looks (variants);
+  preview.py: the preview sheet. The frame's schema is replay/features.py (learning shares it).
+"""
 
 from __future__ import annotations
 
 import sys
 import threading
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from pathlib import Path
 
 from recorder.disk import WriteError, cause, write_failure_in
-from replay.export.dataset import ExportOptions, ExportSummary, check_options, export_serial
 from replay.export.lerobot_io import ExportError
+from replay.export.options import ExportOptions, ExportSummary, check_options
 from replay.export.pieces import is_interrupted
+from replay.export.review_meta import resolve_extras, write_subtasks_file
+from replay.export.serial import export_serial
 from replay.export.shards import export_parallel
 
 
@@ -26,10 +37,17 @@ def export_dataset(paths: Iterable[str | Path], opts: ExportOptions, log: Callab
     """
     log = log or (lambda line: print(line, file=sys.stderr))
     check_options(opts)
+    paths = list(paths)
     try:
+        extras, subtasks = resolve_extras(paths, opts.accepted, opts.reject_flags, opts.out, opts.append or opts.resume)
+        opts = replace(opts, extras=extras, subtasks=subtasks)
         if opts.workers > 1 or opts.ray is not None:
-            return export_parallel(list(paths), opts, log, cancel)
-        return export_serial(paths, opts, log, cancel)
+            summary = export_parallel(paths, opts, log, cancel)
+        else:
+            summary = export_serial(paths, opts, log, cancel)
+        if opts.out.is_dir() and (opts.out / "meta").is_dir():
+            write_subtasks_file(opts.out, opts.subtasks)  # LeRobot's meta/subtasks.parquet, for every piece and shard
+        return summary
     except ExportError:
         raise
     except Exception as exc:  # noqa: BLE001 - a full disk reaches here as OSError, or LeRobot's RuntimeError
@@ -50,4 +68,4 @@ def _what_is_left(opts: ExportOptions) -> str:
     return "nothing was kept" if not opts.out.exists() else f"{opts.out} was left as it is"
 
 
-__all__ = ["ExportOptions", "ExportSummary", "export_dataset"]
+__all__ = ["ExportError", "ExportOptions", "ExportSummary", "export_dataset"]

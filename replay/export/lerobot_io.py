@@ -1,4 +1,4 @@
-"""LeRobot as an optional extra, for the one-process export (dataset.py) and the sharded one (shards.py).
+"""LeRobot as an optional extra, for the one-process export (serial.py) and the sharded one (shards.py).
 
 Here so that both import it and neither takes the other's private helpers: the
 import with a one-line error naming the extra to install, that error, and the

@@ -2,9 +2,9 @@
 
 The unit of an export is a variant: (episode, look index). Variant j of an episode
 draws its look from the look seed `looks_seed + j` and the episode's scene seed
-(scenes.variation: training looks seeds, apart from evaluation's held-out ones), and is
+(scenes.vary.variation: training looks seeds, apart from evaluation's held-out ones), and is
 rendered from a model that differs from the recorded one only in what rendering reads
-(scenes.vary_looks), so every variant has the episode's actions and states. With one
+(scenes.vary.looks), so every variant has the episode's actions and states. With one
 look and nothing to vary the variant is the recorded episode itself: the export is
 today's, file for file.
 
@@ -25,10 +25,10 @@ import mujoco
 
 from replay.episode import Episode
 from replay.export.lerobot_io import ExportError
-from scenes.extra_camera import ExtraCamera
-from scenes.tasks import task_for_episode
-from scenes.variation import GROUPS, VARIATION_KEY, Variation, VariationError, looks_kinds, task_ranges, training_look_seed
-from scenes.vary_looks import apply_looks, sample_looks
+from scenes.cameras.extra import ExtraCamera
+from scenes.tasks.registry import task_for_episode
+from scenes.vary.variation import GROUPS, VARIATION_KEY, Variation, VariationError, looks_kinds, task_ranges, training_look_seed
+from scenes.vary.looks import apply_looks, sample_looks
 
 COLUMN = VARIATION_KEY  # the meta/episodes column
 

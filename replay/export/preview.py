@@ -13,11 +13,12 @@ import numpy as np
 
 from replay.engine import replay_states
 from replay.episode import EpisodeError, find_episodes, load_episode
-from replay.export.dataset import ExportOptions, added_cameras, resolve_cameras
+from replay.export.choose import export_cameras
 from replay.export.lerobot_io import ExportError
 from replay.export.looks import check, variant
+from replay.export.options import ExportOptions, added_cameras
 from replay.render import FastRenderer, RenderError
-from scenes.textures import png_bytes
+from scenes.vary.textures import png_bytes
 
 GAP = 4  # px of white between pictures
 
@@ -41,7 +42,7 @@ def contact_sheet(paths: list, opts: ExportOptions, count: int) -> dict:
         raise ExportError(str(exc)) from None
     if ep.steps == 0:
         raise ExportError(f"{files[0]}: no recorded steps to show")
-    cameras = resolve_cameras(opts.cameras, list(ep.meta.cameras) + [c.name for c in added])
+    cameras = export_cameras(opts.cameras, list(ep.meta.cameras) + [c.name for c in added])
     if not cameras:
         raise ExportError("no cameras to show (--cameras none)")
     columns, looks = [], []

@@ -32,19 +32,13 @@ from pathlib import Path
 
 from recorder.disk import write_failure_in
 from replay.errors import first_line
-from replay.parallel import ClusterError, Runner, WorkerLost, shielded
-from replay.export.dataset import (
-    ExportOptions,
-    ExportSummary,
-    export_serial,
-    export_units,
-    select_episodes,
-    video_decoder,
-    wants_intervention,
-    wants_variation_meta,
-)
+from replay.export.choose import export_units, select_episodes, wants_intervention, wants_variation_meta
+from replay.export.codecs import video_decoder
 from replay.export.lerobot_io import LEROBOT_HINT, ExportError, dir_size, load_lerobot
+from replay.export.options import ExportOptions, ExportSummary
 from replay.export.pieces import is_interrupted
+from replay.export.serial import export_serial, operator_meta
+from scenes.workers import ClusterError, Runner, WorkerLost, shielded
 
 # Two shards per worker even out episodes of different lengths, once there are enough episodes for
 # that to matter; each shard costs ~1 s more in the merge (LeRobot loads its episode metadata).
@@ -229,7 +223,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     # The shards' own settings: what the driver resolved, no progress or callbacks of their own.
     shard_opts = replace(opts, cameras=summary.cameras, only_success=False, progress=False, on_episode=None,
                          workers=1, ray=None, append=False, resume=False, intervention=wants_intervention(opts, chosen),
-                         variation_meta=wants_variation_meta(opts, chosen))
+                         variation_meta=wants_variation_meta(opts, chosen), operator_meta=operator_meta(opts, chosen))
     opts.out.parent.mkdir(parents=True, exist_ok=True)
     parts, runs, finished = _parts(opts, chosen, runs, log)
     shards = [_shard(i, [units[k] for k in run], parts / f"shard_{i:03d}") for i, run in enumerate(runs)]

@@ -29,9 +29,10 @@ import numpy as np
 
 from replay.engine import replay_states
 from replay.episode import Episode
-from replay.export.frames import ENV_STATE, INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
+from replay.features import ENV_STATE, INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
+from replay.export.review_meta import SUBTASK_INDEX
 from replay.render import FastRenderer
-from scenes.extra_camera import ExtraCamera
+from scenes.cameras.extra import ExtraCamera
 
 QUEUE_BYTES = 64 << 20  # frames waiting for LeRobot, at most (~200 frames of two 224x224 cameras)
 
@@ -81,6 +82,7 @@ class _Job:
     # per episode: (episode, recorded model) -> (the model to render it with, what to record of it); None: as recorded
     prepare: list[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None
     drop_idle: bool = False  # leave out idle frames (idle_mask)
+    subtasks: Callable[[Episode], np.ndarray] | None = None  # each step's `subtask_index` (replay/export/review_meta.py)
 
 
 _DONE = object()
@@ -215,12 +217,13 @@ class FrameStream:
         cameras_added: Sequence[ExtraCamera] = (),
         prepare: Sequence[Callable[[Episode, mujoco.MjModel], tuple[mujoco.MjModel, dict]]] | None = None,
         drop_idle: bool = False,
+        subtasks: Callable[[Episode], np.ndarray] | None = None,
     ) -> None:
         """Begin producing: each callable loads one episode, in export order; `cameras_added` go into each one's model;
         `prepare[i]` turns episode i's recorded model into the one it is rendered with (another look);
         `drop_idle` leaves out idle frames (idle_mask), unrendered."""
         self._job = _Job(list(episodes), action, task, list(keys), list(channel_first), intervention, objects, tuple(cameras_added),
-                         None if prepare is None else list(prepare), drop_idle)
+                         None if prepare is None else list(prepare), drop_idle, subtasks)
         self._started.set()
 
     def __iter__(self) -> Iterator[dict | EpisodeEnd]:
@@ -301,6 +304,7 @@ class FrameStream:
             build = FrameBuilder(arms, job.action, objects)
             task = job.task(ep)
             driven = intervention_values(ep.control, ep.meta.source, ep.steps) if job.intervention else None
+            subtask_ids = job.subtasks(ep) if job.subtasks is not None else None
             kept = 0
             for k, data in replay_states(ep, model):
                 if keep is not None and not keep[k]:
@@ -309,6 +313,8 @@ class FrameStream:
                 frame = build(data, ep.ctrl[k], ep.ee_target[k])
                 if driven is not None:
                     frame[INTERVENTION] = driven[k]
+                if subtask_ids is not None:
+                    frame[SUBTASK_INDEX] = subtask_ids[k:k + 1]
                 if renderer is not None:
                     for c in range(own):
                         frame[job.keys[c]] = renderer.render(data, c, job.channel_first[c])

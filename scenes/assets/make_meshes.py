@@ -8,7 +8,7 @@ Each mesh stands on z = 0 with its axis on z, so a task places it by its base.
     python scenes/assets/make_meshes.py            # writes scenes/assets/meshes/*.obj, *.xml
     python scenes/assets/make_meshes.py --collision  # and pre-computes their convex parts
 
-`--collision` runs `scenes.mesh_collision.convex_parts` on each mesh and writes
+`--collision` runs `scenes.assembly.mesh_collision.convex_parts` on each mesh and writes
 the parts next to it, so no user waits for the decomposition of a library mesh.
 """
 
@@ -179,7 +179,29 @@ CABINET_DOOR_XML = """<mujoco model="cabinet_door">
 </mujoco>
 """
 
-MJCF: dict[str, str] = {"drawer_cabinet": DRAWER_XML, "cabinet_door": CABINET_DOOR_XML}
+L_BLOCK_XML = """<mujoco model="l_block">
+  <compiler angle="radian"/>
+  <!-- An L-shaped block of two boxes, free to move: an object whose yaw matters (it has one way to be
+       held across its long arm, two with the gripper turned half a turn); written by make_meshes.py.
+       Frame: origin on the table under the middle of the long arm, the long arm along x, the short arm
+       at its +x end reaching toward +y. A parallel gripper holds the long arm across (fingers along y)
+       above the origin. Names: body `l_block`, its joint `l_block_joint`. -->
+  <default>
+    <default class="l_block">
+      <geom type="box" rgba="0.9 0.55 0.15 1" friction="1 0.005 0.0001" condim="4" density="400"/>
+    </default>
+  </default>
+  <worldbody>
+    <body name="l_block" pos="0 0 0">
+      <freejoint name="l_block_joint"/>
+      <geom class="l_block" name="l_block_long" size="0.05 0.015 0.02" pos="0 0 0.02"/>
+      <geom class="l_block" name="l_block_short" size="0.015 0.035 0.02" pos="0.035 0.05 0.02"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+MJCF: dict[str, str] = {"drawer_cabinet": DRAWER_XML, "cabinet_door": CABINET_DOOR_XML, "l_block": L_BLOCK_XML}
 
 
 def _obj_text(mesh: trimesh.Trimesh, name: str) -> str:
@@ -206,7 +228,7 @@ def write_all(out: Path = OUT, collision: bool = False) -> list[Path]:
         written.append(path)
     if collision:
         sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-        from scenes.mesh_collision import ship_parts
+        from scenes.assembly.mesh_collision import ship_parts
 
         for name in MESHES:
             written.append(ship_parts(out / f"{name}.obj"))

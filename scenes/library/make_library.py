@@ -62,6 +62,10 @@ CAN = mesh("can", [0.8, 0.15, 0.15, 1.0], 0.09, grasp=(0.0, 0.0, 0.05), floor=0.
 PLATE = mesh("plate", WHITE, 0.018, floor=0.005)
 BASKET = mesh("basket", WOOD, 0.06, floor=0.006)
 CUBE = cube("cube", RED)
+# Two boxes in an L (scenes/assets/meshes/l_block.xml; its origin on the table under the long arm's middle):
+# one way round, so a script turns the hand to its yaw (`"align": "yaw"`) to hold the long arm across.
+L_BLOCK = Thing("l_block", {"mjcf": f"{MESHES}/l_block.xml", "yaw": [-3.1416, 3.1416]}, 0.04, grasp=(0.0, 0.0, 0.02),
+                fits=BIG_ARMS)
 
 
 @dataclass
@@ -127,8 +131,8 @@ def the(name: str) -> str:
 
 # --- families -----------------------------------------------------------------------------------------
 
-def pick_place(thing: Thing, target: Thing, word: str) -> Task:
-    """put {object} in/on {container}"""
+def pick_place(thing: Thing, target: Thing, word: str, x=(-0.1, -0.04), y=(0.04, 0.1)) -> Task:
+    """put {object} in/on {container}; x, y: the object's region (m), kept clear of the container's on every seed"""
     carry = target.top - target.floor + 0.05
     steps = pick_steps(thing, thing.name, target.top + 0.05) + place_steps(thing, target, target.name, carry) + [{"duration": 0.5}]
     pred = "inside" if word == "in" else "on"
@@ -136,7 +140,7 @@ def pick_place(thing: Thing, target: Thing, word: str) -> Task:
         f"put_{thing.name}_{word}_{target.name}", "pick_place", f"Put the {the(thing.name)} {word} the {the(target.name)}.",
         [f"Place the {the(thing.name)} {'into' if word == 'in' else 'onto'} the {the(target.name)}.",
          f"Pick up the {the(thing.name)} and put it {word} the {the(target.name)}."],
-        [obj(thing), obj(target, x=(0.02, 0.08), y=(-0.1, -0.06))],
+        [obj(thing, x=x, y=y), obj(target, x=(0.02, 0.08), y=(-0.1, -0.06))],
         f"{pred}({thing.name}, {target.name}) and at_rest({thing.name})",
         [{"object": thing.name, "kind": "grasp"}, {"object": target.name, "kind": "place"}], steps,
         robots=tuple(r for r in ARMS if r in thing.fits and r in target.fits),
@@ -148,8 +152,21 @@ def lift(thing: Thing) -> Task:
     return Task(
         f"lift_{thing.name}", "lift", f"Pick up the {the(thing.name)}.",
         [f"Lift the {the(thing.name)} off the table.", f"Grab the {the(thing.name)} and raise it."],
-        [obj(thing, x=(-0.06, 0.06), y=(-0.06, 0.06))], f"lifted({thing.name}, 0.05)",
+        [obj(thing, x=(-0.06, 0.06), y=(-0.06, 0.06))], f"grasped({thing.name}) and lifted({thing.name}, 0.05)",
         [{"object": thing.name, "kind": "grasp"}], pick_steps(thing, thing.name, 0.15) + [{"duration": 0.5}], robots=thing.fits,
+    )
+
+
+def lift_at_any_yaw(thing: Thing, words: str) -> Task:
+    """pick up {object} placed at any yaw: the hand turns to the object's yaw (mod pi) as it comes down"""
+    steps = pick_steps(thing, thing.name, 0.15) + [{"duration": 0.5}]
+    for step in steps[:2]:  # the reach and the descent: turned to the object, the nearer of the two grasps
+        step["align"] = "yaw"
+    return Task(
+        f"lift_{thing.name}", "lift", f"Pick up the {words}.",
+        [f"Lift the {words} off the table, however it lies.", f"Grab the long arm of the {words} and raise it."],
+        [obj(thing, x=(-0.06, 0.06), y=(-0.06, 0.06))], f"grasped({thing.name}) and lifted({thing.name}, 0.05)",
+        [{"object": thing.name, "kind": "grasp"}], steps, robots=thing.fits,
     )
 
 
@@ -321,10 +338,10 @@ def library(small: bool = False) -> list[Task]:
     """Every task; `small` gives the SO-101's grasps where they differ (its jaw opens 21 mm)."""
     MUG = MUG_BY_RIM if small else globals()["MUG"]
     tasks = [pick_place(CUBE, BOWL, "in"), pick_place(CUBE, PLATE, "on"), pick_place(CUBE, BASKET, "in"),
-             pick_place(MUG, BASKET, "in"), pick_place(CUP, BASKET, "in"), pick_place(CAN, BASKET, "in"),
+             pick_place(MUG, BASKET, "in", x=(-0.1, -0.06), y=(0.06, 0.1)), pick_place(CUP, BASKET, "in"), pick_place(CAN, BASKET, "in"),
              pick_place(BOTTLE, BASKET, "in"), pick_place(MUG, PLATE, "on"), pick_place(CUP, PLATE, "on"),
              pick_place(CAN, PLATE, "on"), pick_place(BOWL, PLATE, "on"), pick_place(CAN, BOWL, "in")]
-    tasks += [lift(t) for t in (MUG, CUP, BOWL, BOTTLE, CAN)]
+    tasks += [lift(t) for t in (MUG, CUP, BOWL, BOTTLE, CAN)] + [lift_at_any_yaw(L_BLOCK, "L-shaped block")]
     tasks += [stack_three(), cube_on_can(), push(CUBE, small), push(CAN), drawer("open"), drawer("close"), drawer("cube"),
               open_cupboard(), sort_cubes(), upright_bottle(), peg("square"), peg("round")]
     return tasks

@@ -3,7 +3,8 @@
 Every error a user can cause (a `TeleopError`: a flag, a file, a device, the disk)
 ends as one line on stderr and exit code 2;
 tracebacks are for bugs only. With `--json`, stdout carries the one JSON object
-and nothing else (teleop/cli/json_output.py).
+and nothing else, `{"error": ...}` when the command fails, a usage error included
+(teleop/cli/json_output.py).
 """
 
 from __future__ import annotations
@@ -12,23 +13,43 @@ import argparse
 import contextlib
 import os
 import sys
+from typing import NoReturn
 
+from teleop.cli import annotate as cli_annotate
+from teleop.cli import bench as cli_bench
+from teleop.cli import campaign as cli_campaign
+from teleop.cli import catalog as cli_catalog
 from teleop.cli import devices as cli_devices
+from teleop.cli import episodes as cli_episodes
 from teleop.cli import eval as cli_eval
 from teleop.cli import export as cli_export
 from teleop.cli import generate as cli_generate
-from teleop.cli import record as cli_record
 from teleop.cli import run as cli_run
+from teleop.cli import review as cli_review
 from teleop.cli import serve as cli_serve
 from scenes.errors import TeleopError, first_line
-from teleop.cli.json_output import json_stdout
+from teleop.cli.json_output import json_command, print_json
 from teleop.cli.signals import terminate_as_interrupt
 
-MODULES = (cli_run, cli_record, cli_serve, cli_devices, cli_export, cli_generate, cli_eval)
+# One module per command group, in the order `teleop --help` lists them.
+MODULES = (cli_catalog, cli_run, cli_bench, cli_episodes, cli_serve, cli_campaign, cli_devices, cli_export, cli_annotate,
+           cli_review, cli_generate, cli_eval)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser (its subcommands' too); a usage error in a `--json` command line is also
+    answered on stdout as `{"error": ...}`, before argparse's usage and exit code 2."""
+
+    json_requested = False  # set by `main` from the command line, before parsing
+
+    def error(self, message: str) -> NoReturn:
+        if Parser.json_requested:
+            print_json({"error": message})
+        super().error(message)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="teleop",
         description="Teleoperate MuJoCo robot arms, record demonstrations, replay them exactly, export datasets.",
     )
@@ -40,12 +61,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
+    Parser.json_requested = "--json" in argv
     args = parser.parse_args(argv)
     terminate_as_interrupt()  # SIGTERM ends a session the way Ctrl-C does: the episode in progress is kept
     as_json = bool(getattr(args, "json", False))
     try:
-        with json_stdout() if as_json else contextlib.nullcontext():
+        # --json: exactly one object on stdout whatever happens ({"error": ...} when the command printed none)
+        with json_command(args.command) if as_json else contextlib.nullcontext():
             return int(args.func(args) or 0)
     except TeleopError as exc:
         print(f"teleop {args.command}: error: {first_line(exc)}", file=sys.stderr)

@@ -44,6 +44,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--task", default=None, metavar="TEXT", help="task text for every frame (default: each episode's recorded task)")
     p.add_argument("--only-success", action="store_true", help="skip episodes that did not succeed at their task")
+    p.add_argument("--accepted", action="store_true",
+                   help="only episodes with an accept verdict (teleop review: <episode>.review.json); the dataset's "
+                   "episode metadata then carries each one's verdict, reviewer and quality flags")
+    p.add_argument("--reject-flags", default=None, metavar="FLAG[,FLAG]",
+                   help="leave out episodes with any of these quality flags (docs/review.md: long, idle, jerky, "
+                   "wandering, tracking, chatter, dropped, hard_contact, failed, not_exact)")
+    p.add_argument("--operator", default=None, metavar="NAME[,NAME]",
+                   help="export only the episodes these operators recorded (a collection campaign's episodes name "
+                   "theirs; the dataset's episode metadata gets an `operator` column)")
     p.add_argument("--no-video", action="store_true", help="store camera frames as PNG images instead of MP4 video")
     p.add_argument(
         "--vcodec", default=None, choices=("h264", "av1", "hevc"),
@@ -131,9 +140,12 @@ def _workers(text: str) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     quiet_environment()
-    from replay.export.dataset import ExportError, ExportOptions, parse_cameras, parse_image_size
+    from replay.export import ExportError, ExportOptions
+    from replay.export.operators import parse_operators
+    from replay.export.options import parse_image_size
+    from replay.features import parse_cameras
     from replay.export import export_dataset
-    from scenes.extra_camera import CameraSpecError, parse_cameras as parse_extra_cameras
+    from scenes.cameras.extra import CameraSpecError, parse_cameras as parse_extra_cameras
 
     try:
         parse_extra_cameras(args.camera)  # a malformed --camera answers at once, before any file is read
@@ -166,6 +178,9 @@ def cmd_export(args: argparse.Namespace) -> int:
             looks=_count(args.looks, "--looks", "looks"),
             variation=variation,
             drop_idle=args.drop_idle,
+            operators=parse_operators(args.operator),
+            accepted=args.accepted,
+            reject_flags=tuple(w.strip() for w in (args.reject_flags or "").split(",") if w.strip()),
         )
         if preview is not None:
             from replay.export.preview import contact_sheet

@@ -1,4 +1,4 @@
-"""`teleop annotate` and `teleop generate`: subtasks of a few demonstrations, then many more like them."""
+"""`teleop generate`: many demonstrations from a few annotated ones (their subtasks carried to new scenes)."""
 
 from __future__ import annotations
 
@@ -14,18 +14,6 @@ from teleop.cli.variation_args import add_physics_args, variation_from
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register this module's subcommands."""
-    p = sub.add_parser(
-        "annotate",
-        help="show or find the subtasks of recorded episodes (stored beside each file)",
-        description="Show each episode's subtask boundaries; --auto finds them from the recorded gripper "
-        "commands and contacts and stores them beside the episode (EPISODE.subtasks.json). "
-        "Edit them in the replay viewer: teleop replay EPISODE --serve.",
-    )
-    p.add_argument("paths", nargs="+", type=Path, metavar="EPISODE", help="episode files or directories of them")
-    p.add_argument("--auto", action="store_true", help="find the boundaries automatically (replaces stored ones)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=cmd_annotate)
-
     g = sub.add_parser(
         "generate",
         help="generate demonstrations from a few recorded ones (MimicGen's method), in parallel",
@@ -40,6 +28,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=None, metavar="K", help="local worker processes (default: the cores)")
     g.add_argument("--ray", default=None, metavar="ADDRESS", help="run on a Ray cluster: 'auto' or HOST:PORT (needs .[cluster])")
     g.add_argument("--keep-failures", action="store_true", help="also keep failed attempts (in DIR/failures, success false)")
+    g.add_argument("--source-per-arm", action="store_true",
+                   help="a two-arm task: each arm chooses the source of each of its subtasks on its own (default: one "
+                   "source episode for both arms; a coordinated pair always shares one)")
     g.add_argument("--format", default="mcap", choices=("mcap", "hdf5", "both"), help="file format (default mcap)")
     g.add_argument("--max-attempts", type=int, default=None, metavar="N", help="give up after N attempts (default 10 x --num + 10)")
     g.add_argument("--force-new", action="store_true",
@@ -49,33 +40,6 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_physics_args(g)
     g.add_argument("--json", action="store_true", help="print one JSON object")
     g.set_defaults(func=cmd_generate)
-
-
-def cmd_annotate(args: argparse.Namespace) -> int:
-    from recorder.disk import WriteError
-    from replay.annotate import annotate
-    from replay.episode import find_episodes
-
-    files = find_episodes(args.paths)
-    if not files:
-        raise UsageError("no episode files found in " + ", ".join(str(p) for p in args.paths))
-    episodes = []
-    for path in files:
-        try:
-            subtasks, how = annotate(path, auto=args.auto)
-        except WriteError as exc:  # a full disk: the sidecars saved before stay, none is half-written
-            if args.json:
-                print_json({"episodes": episodes, "error": str(exc)})
-            raise WriteError(f"{exc} ({len(episodes)} of {len(files)} episodes annotated)"
-                             if episodes else str(exc)) from None
-        episodes.append({"path": str(path), "by": how, "subtasks": [s.to_json() for s in subtasks]})
-    if args.json:
-        print_json({"episodes": episodes})
-        return 0
-    for ep in episodes:
-        parts = ", ".join(f"{s['object']} {s['start']}-{s['end']}" for s in ep["subtasks"])
-        print(f"{ep['path']}: {parts}" + (" (found automatically, saved)" if ep["by"] == "auto" else ""))
-    return 0
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
@@ -91,6 +55,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         workers=args.workers,
         ray=args.ray,
         keep_failures=args.keep_failures,
+        source_per_arm=args.source_per_arm,
         formats=("mcap", "hdf5") if args.format == "both" else (args.format,),
         max_attempts=args.max_attempts,
         progress=sys.stderr.isatty(),

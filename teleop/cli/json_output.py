@@ -4,6 +4,11 @@ While a `--json` command runs, everything else that would reach stdout goes to
 stderr instead: Python writes (print, rich consoles such as viser's banner, even
 ones holding the old sys.stdout), and writes to file descriptor 1 (C libraries,
 child processes that inherit it). Only `print_json` reaches the real stdout.
+
+`json_command` is the one place that makes a `--json` command answer whatever
+happens: a command that ends without printing its object (an error the user can
+fix, Ctrl-C, a bug) prints `{"error": "<one line>"}` instead, so stdout always
+holds exactly one JSON object.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import os
 import sys
 from collections.abc import Iterator
 from typing import IO, Any
+
+from scenes.errors import TeleopError, first_line
 
 _real: IO[str] | None = None  # the real stdout while a --json command runs
 _printed = 0
@@ -55,6 +62,40 @@ def json_stdout() -> Iterator[None]:
             real.close()
 
 
+@contextlib.contextmanager
+def json_command(command: str) -> Iterator[None]:
+    """Run a `--json` command's block: stdout kept to one object, `{"error": ...}` when it printed none.
+
+    The exception (or exit) goes on as it would without --json: the entry point still
+    prints its one line on stderr and picks the exit code.
+    """
+    with json_stdout():
+        try:
+            yield
+        except BrokenPipeError:  # the reader left: nothing more can reach it
+            raise
+        except BaseException as exc:
+            if not json_printed():
+                print_json({"error": error_text(exc)})
+            raise
+        if not json_printed():
+            print_json({"error": f"teleop {command} ended without a result"})
+
+
+def error_text(exc: BaseException) -> str:
+    """What `{"error": ...}` says of an exception: a user error's one line, an interrupt, or a bug's type."""
+    if isinstance(exc, TeleopError):
+        return first_line(exc)
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted"
+    return f"internal error: {type(exc).__name__}" + (f": {first_line(exc)}" if str(exc).strip() else "")
+
+
+def json_printed() -> bool:
+    """Whether the `--json` command now running (or the last one) has printed its JSON value."""
+    return _printed > 0
+
+
 def print_json(obj: Any, indent: int | None = None) -> None:
     """Print the command's JSON value: on the real stdout, once per `--json` command."""
     global _printed
@@ -62,6 +103,7 @@ def print_json(obj: Any, indent: int | None = None) -> None:
     if _real is None:
         sys.stdout.write(text)
         sys.stdout.flush()
+        _printed += 1
         return
     if _printed:
         raise RuntimeError("a --json command printed a second JSON value")

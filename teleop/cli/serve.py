@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from teleop.cli.run import add_session_args, make_session, open_session_devices
+from teleop.cli.session_args import add_session_args, devices_from, session_from
 from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
 
@@ -58,8 +58,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     policy = _load_policy(args) if args.policy is not None else None
     if args.control_hz is None:
         args.control_hz = getattr(policy, "trained_on", None) and policy.trained_on.fps or 30.0
-    session = make_session(args, verify="background", on_error="stop")
-    devices, problems = open_session_devices(args, session.n_arms, serving=True)
+    session = session_from(args, verify="background", on_error="stop")
+    devices, problems = devices_from(args, session.controller.n_arms, serving=True)
     # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
     with cancel_on_interrupt(even_if_ignored=True) as stop:
         return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed,

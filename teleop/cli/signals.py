@@ -7,7 +7,7 @@ gives it. A command picks how a signal reaches what it runs:
 - `cancel_on_interrupt()`: the signal sets a token handed to the call (export,
   generate, serve, the replay viewer). A second Ctrl-C raises KeyboardInterrupt, for
   a step that does not look at the token (an import of seconds); the steps that must
-  end whole hold it until they have (replay.parallel.shielded).
+  end whole hold it until they have (scenes.workers.shielded).
 - `interrupts_ignored()`: around a save that a second Ctrl-C must not cut short
   (`teleop run`, whose loop ends on the KeyboardInterrupt itself).
 - `terminate_as_interrupt()`: SIGTERM ends any command the way Ctrl-C does.

@@ -1,4 +1,4 @@
-"""The variation flags every command shares: `--vary`, `--vary-range`, `--texture`, `--looks-seed` (scenes/variation.py).
+"""The variation flags every command shares: `--vary`, `--vary-range`, `--texture`, `--looks-seed` (scenes/vary/variation.py).
 
 A bad word, range or file is a VariationError: one line and exit 2, before anything runs.
 """
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from scenes.variation import HELD_OUT_BASE, KEYS, Variation, VariationError, parse_range_flags, parse_vary, read_texture
+from scenes.vary.variation import HELD_OUT_BASE, KEYS, Variation, VariationError, parse_range_flags, parse_vary, read_texture
 
 PHYSICS_WORDS = "physics (= size,mass,friction,damping), size, mass, friction, damping, distractors (physical)"
 LOOKS_WORDS = "looks (= lights,colors,textures,cameras), lights, colors, textures, cameras, distractors (visual only)"

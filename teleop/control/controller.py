@@ -20,7 +20,7 @@ import numpy as np
 
 from devices.command import Command
 from scenes import Scene, actuator_for_joint
-from scenes.arena import TABLE_TOP
+from scenes.assembly.arena import TABLE_TOP
 from teleop.control.ik import ArmIK
 
 TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
@@ -175,6 +175,13 @@ class Controller:
         if bid < 0:
             raise KeyError(f"no body named {name!r} in the scene")
         return self.data.xpos[bid].copy()
+
+    def body_quat(self, name: str) -> np.ndarray:
+        """World orientation (wxyz quaternion) of a body; KeyError naming it if unknown."""
+        bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if bid < 0:
+            raise KeyError(f"no body named {name!r} in the scene")
+        return self.data.xquat[bid].copy()
 
     def success(self) -> bool:
         return self.scene.success(self.data)

@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from devices.base import Device, InputStamped
+from devices.base import Device, InputStamped, SceneChecked
 from devices.command import Command
 from scenes.errors import first_line
 from teleop.control.controller import StepResult
@@ -94,16 +94,35 @@ def poll_devices(
     commands: list[Command] = []
     for device in devices:
         if broken is None:
-            commands.extend(device.poll(session, session.dt))
+            commands.extend(device.poll(session.controller, session.dt))
             continue
         if device.name in broken:
             continue
         try:
-            commands.extend(device.poll(session, session.dt))
+            commands.extend(device.poll(session.controller, session.dt))
         except Exception as exc:  # noqa: BLE001 - a device's bug must not stop the loop
             broken[device.name] = first_line(exc)
-            session.note(f"{device.name} stopped: {broken[device.name]}")
+            session.stats.note(f"{device.name} stopped: {broken[device.name]}")
     return commands
+
+
+def check_devices(session: Session, devices: Sequence[Device], broken: dict[str, str] | None = None) -> None:
+    """Check each device that names parts of the scene against it, before the first tick.
+
+    The error propagates (one line), or with `broken` given the device is noted there and
+    skipped, as `poll_devices` does with a device that raises.
+    """
+    for device in devices:
+        if not isinstance(device, SceneChecked) or (broken is not None and device.name in broken):
+            continue
+        if broken is None:
+            device.check(session.controller)
+            continue
+        try:
+            device.check(session.controller)
+        except Exception as exc:  # noqa: BLE001 - one device's bad input must not stop the others
+            broken[device.name] = first_line(exc)
+            session.stats.note(f"{device.name} stopped: {broken[device.name]}")
 
 
 def newest_input_time(devices: Sequence[Device]) -> float:
@@ -155,24 +174,25 @@ def run_episode(
     record = recorder is not None if record is None else record
     if record and recorder is None:
         raise ValueError("record=True needs a Recorder attached to the session")
+    check_devices(session, devices, broken_devices)  # a script naming what the scene lacks: before anything is recorded
     if recorder is not None:
         recorder.drivers(devices)
     if record:
         recorder.start()
     can_finish = stop_on_script_end and bool(devices) and all(d.kind in FINITE_KINDS for d in devices)
-    ik_before = session.ik_failures
-    sim0 = session.time
+    ik_before = session.stats.ik_failures
+    sim0 = session.controller.time
     steps = 0
     wall0 = time.perf_counter()
     pacer = pacer if pacer is not None else (Pacer(session.dt, stop) if realtime else None)
     guard = guard if guard is not None else contextlib.nullcontext()
-    tracking_start = len(session.tracking_errors)
+    tracking_start = len(session.controller.tracking_errors)
     stopped_by: StopReason = "stopped"
     while True:
         if stop is not None and stop.is_set():
             stopped_by = "stopped"
             break
-        if seconds is not None and session.time - sim0 >= seconds - 1e-9:
+        if seconds is not None and session.controller.time - sim0 >= seconds - 1e-9:
             stopped_by = "time"
             break
         if max_steps is not None and steps >= max_steps:
@@ -195,12 +215,12 @@ def run_episode(
         if stop_on_events and any(e in stop_on_events for e in result.events):
             stopped_by = "event"
             break
-        if stop_on_success and session.success():
+        if stop_on_success and session.controller.success():
             stopped_by = "success"
             break
         if pacer is not None:
             pacer.wait()
-    success = session.success()
+    success = session.controller.success()
     files: list[Path] = []
     bit_exact = None
     if record and recorder.recording:
@@ -210,10 +230,10 @@ def run_episode(
     return EpisodeResult(
         success=success,
         steps=steps,
-        sim_seconds=round(session.time - sim0, 6),
+        sim_seconds=round(session.controller.time - sim0, 6),
         wall_seconds=round(time.perf_counter() - wall0, 6),
-        ik_failures=session.ik_failures - ik_before,
-        ee_tracking_error_mm=session.tracking_error_mm(since=tracking_start),
+        ik_failures=session.stats.ik_failures - ik_before,
+        ee_tracking_error_mm=session.controller.tracking_error_mm(since=tracking_start),
         stopped_by=stopped_by,
         seed=session.seed,
         files=files,

@@ -35,8 +35,8 @@ from recorder import EpisodeWriter, RecorderError, next_episode_index
 from recorder.format import ArmMeta, EpisodeMeta
 from replay import VerifyResult, verify_file
 from scenes.errors import first_line
-from scenes.tasks import episode_extra
-from scenes.variation import VARIATION_KEY
+from scenes.tasks.registry import episode_extra
+from scenes.vary.variation import VARIATION_KEY
 from teleop.control.controller import Controller
 from teleop.control.record_row import RowFiller
 from teleop.control.session import Session
@@ -202,7 +202,7 @@ class Recorder:
         if writer is None:
             return []
         try:
-            paths = writer.close(success=self.session.success(), complete=complete)
+            paths = writer.close(success=self.session.controller.success(), complete=complete)
         except RecorderError as exc:
             self._failed(exc, writer_closed=True)
             return []
@@ -268,7 +268,7 @@ class Recorder:
             except RecorderError:
                 pass  # the same error again: what reached the disk stays
         self.error = first_line(exc)
-        self.session.note(f"recording stopped: {self.error}")
+        self.session.stats.note(f"recording stopped: {self.error}")
         if self.on_error == "raise":
             raise exc
 
@@ -291,7 +291,7 @@ class Recorder:
         self.last_verify = result
         self.verified[str(path)] = result is not None and bool(result.bit_exact)
         if result is not None and not result.bit_exact:
-            self.session.note(f"episode {path.name} did not replay exactly (step {result.first_divergence_step})")
+            self.session.stats.note(f"episode {path.name} did not replay exactly (step {result.first_divergence_step})")
         if self.on_verified is not None:
             self.on_verified(path, result)
 

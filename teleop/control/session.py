@@ -1,9 +1,11 @@
 """A session: a robot in a task scene at a fixed control rate, driven by Commands.
 
 The session builds the scene for a seed and the `Controller` that runs its
-ticks, turns episode events from devices (start, save, discard, reset) into
-calls on an attached recorder, and offers devices the read-only view they may
-look at (`devices.view.SessionView`). Recording is the Recorder's business; the
+ticks, and turns episode events from devices (start, save, discard, reset) into
+calls on an attached recorder. What the tick knows (model, data, arms, poses,
+success: the read-only `devices.view.SessionView` devices get) is asked of
+`session.controller`, which a reset replaces; counts and operator notes that
+outlive resets are `session.stats`. Recording is the Recorder's business; the
 loop that polls devices and paces ticks is `teleop.control.loop.run_episode`.
 `AttachedRecorder` names what the session asks of `teleop.control.recording.Recorder`,
 so that this module need not import that one (which imports this one).
@@ -12,19 +14,17 @@ so that this module need not import that one (which imports this one).
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
-import mujoco
 import numpy as np
 
 from devices.command import Command
 from scenes import RobotSpec, Scene, build_scene, load_robot
-from scenes.tasks import Task, find_task
-from scenes.variation import Variation
-from teleop.control.controller import ArmState, ControlStats, Controller, StepResult, TickObserver, physics_split
+from scenes.tasks.registry import Task, find_task
+from scenes.vary.variation import Variation
+from teleop.control.controller import ControlStats, Controller, StepResult, TickObserver, physics_split
 from teleop.errors import SessionError
 
 
@@ -51,7 +51,7 @@ class Session:
     scene: a task name (`teleop scenes`), a task file PATH.toml or a Task; robot: a built-in name, a PATH.toml or
     a RobotSpec; seed: object placement (same seed, same scene); control_hz:
     control ticks per second (physics runs in equal steps of at most 2 ms); variation: physics
-    drawn for each seed into its model (scenes.vary_physics), recorded with every episode.
+    drawn for each seed into its model (scenes.vary.physics), recorded with every episode.
     """
 
     def __init__(
@@ -70,7 +70,7 @@ class Session:
         self.control_hz = float(control_hz)
         self.dt = 1.0 / self.control_hz  # s per control tick
         self.substeps, self.timestep = physics_split(self.control_hz)
-        self.stats = ControlStats()
+        self.stats = ControlStats()  # IK failures, clamped targets, ignored commands, notes: kept across resets
         self.recorder: AttachedRecorder | None = None
         self.variation = variation
         self.load(seed)
@@ -83,7 +83,7 @@ class Session:
         self.scene: Scene = build_scene(self.task, self.robot, self.seed, timestep=self.timestep, variation=self.variation)
         self.robot = self.scene.robot  # a user's robot gets its reach measured here
         try:
-            self.controller = Controller(self.scene, self.control_hz, self.stats)
+            self.controller = Controller(self.scene, self.control_hz, self.stats)  # the tick; a new one per scene
         except ValueError as exc:
             raise SessionError(str(exc)) from None
 
@@ -108,84 +108,6 @@ class Session:
         if self.recorder is not None and self.recorder.recording:
             return self.recorder.save(complete=False)
         return []
-
-    # --- the controller's parts, for views and benches ------------------------
-
-    @property
-    def model(self) -> mujoco.MjModel:
-        return self.controller.model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self.controller.data
-
-    @property
-    def arms(self) -> list[ArmState]:
-        return self.controller.arms
-
-    @property
-    def steps(self) -> int:
-        """Ticks since the scene was built or the recording started."""
-        return self.controller.steps
-
-    @property
-    def nstate(self) -> int:
-        return self.controller.nstate
-
-    @property
-    def tracking_errors(self) -> deque[np.ndarray]:
-        return self.controller.tracking_errors
-
-    @property
-    def ik_failures(self) -> int:
-        return self.stats.ik_failures
-
-    @property
-    def clamped(self) -> int:
-        return self.stats.clamped
-
-    @property
-    def ignored_commands(self) -> int:
-        return self.stats.ignored_commands
-
-    @property
-    def messages(self) -> list[str]:
-        return self.stats.messages
-
-    def note(self, message: str) -> None:
-        """Remember a message for the operator (deduplicated, most recent last)."""
-        self.stats.note(message)
-
-    # --- devices.view.SessionView ----------------------------------------------
-
-    @property
-    def time(self) -> float:
-        """Simulated seconds since the scene was built."""
-        return self.controller.time
-
-    @property
-    def n_arms(self) -> int:
-        return self.controller.n_arms
-
-    def ee_pose(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Actual EE (position m, wxyz quaternion), world frame."""
-        return self.controller.ee_pose(arm)
-
-    def target_pose(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """EE target (position m, wxyz quaternion), world frame."""
-        return self.controller.target_pose(arm)
-
-    def body_pos(self, name: str) -> np.ndarray:
-        """World position (m) of a body; KeyError naming it if unknown."""
-        return self.controller.body_pos(name)
-
-    def success(self) -> bool:
-        """The task's success predicate on the current state."""
-        return self.controller.success()
-
-    def tracking_error_mm(self, since: int = 0) -> dict[str, float | None]:
-        """Median and max EE target-to-actual distance (mm) over the ticks kept."""
-        return self.controller.tracking_error_mm(since)
 
     # --- the tick ------------------------------------------------------------
 
@@ -218,7 +140,7 @@ class Session:
             event = "save" if recorder is not None and recorder.recording else "start"
         if recorder is None:
             if event == "start":
-                self.note("not recording: the session has no recorder (start it with a record directory)")
+                self.stats.note("not recording: the session has no recorder (start it with a record directory)")
             return
         if event == "start":
             recorder.start()

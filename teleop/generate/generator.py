@@ -30,14 +30,16 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from recorder.annotations import read_subtasks, write_subtasks
 from recorder.disk import NotEnoughSpace, WriteError, check_free_space, write_bytes_whole, write_error
-from replay.annotate import auto_subtasks
-from replay.parallel import Runner, connect_ray
 from replay.episode import EpisodeError, find_episodes, load_episode
+from replay.subtasks.annotate import auto_subtasks
+from replay.subtasks.sidecar import SIDECAR_SUFFIX, AnnotationError, read_subtasks, write_subtasks
 from scenes.errors import TeleopError, first_line
-from scenes.tasks import TASK_FILE_KEY, task_for_episode
-from scenes.variation import Variation
+from scenes.tasks.placement import PlacementError
+from scenes.tasks.registry import TASK_FILE_KEY, task_for_episode
+from scenes.vary.variation import Variation
+from scenes.workers import Runner, connect_ray
+from teleop.generate.arms import ArmSegments, ArmsPlanDevice, arm_refs, choose_arm_segments, cut_arms, generated_subtasks
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
 from teleop.generate.resume import Done, Journal, run_identity
 from teleop.control.loop import run_episode
@@ -47,6 +49,9 @@ from teleop.control.session import Session
 GENERATOR = "teleop.generate.generator"
 GENERATOR_VERSION = 1
 FORMATS = ("mcap", "hdf5")
+# Why an attempt failed, as the journal and the summary's `failures` count it: the task could not place
+# its objects for the seed (the file's regions are too tight for it), or the run ended without success.
+PLACEMENT, TASK_NOT_DONE = "placement", "task_not_done"
 
 
 class GenerateError(TeleopError, ValueError):
@@ -58,7 +63,8 @@ class SourceDemo:
     """A source episode cut into its subtask segments."""
 
     name: str
-    segments: tuple[Segment, ...]
+    segments: tuple[Segment, ...]  # a two-arm source: every arm's, one arm after the other
+    arms: ArmSegments | None = None  # a two-arm source: its segments per arm (teleop.generate.arms)
 
 
 @dataclass(frozen=True)
@@ -72,8 +78,10 @@ class Job:
     formats: tuple[str, ...]
     keep_failures: bool
     settle_s: float = SETTLE_S
-    task_file: Mapping[str, Any] | None = None  # the sources' embedded task file (scenes.tasks.TASK_FILE_KEY), if any
-    variation: Variation | None = None  # physics drawn per seed into each episode's model (scenes.vary_physics)
+    task_file: Mapping[str, Any] | None = None  # the sources' embedded task file (scenes.tasks.registry.TASK_FILE_KEY), if any
+    variation: Variation | None = None  # physics drawn per seed into each episode's model (scenes.vary.physics)
+    constraints: tuple = ()  # a two-arm task's constraints, arms by index (teleop.generate.arms.arm_refs)
+    source_per_arm: bool = False  # a two-arm task: each arm chooses its own sources (else one source for all)
 
     def session(self, seed: int) -> Session:
         """The scene for `seed`: from the task file the sources embed when they do, else by name."""
@@ -98,7 +106,8 @@ class Attempt:
     sources: tuple[str, ...]
     bit_exact: bool | None = None
     files: list[tuple[str, bytes]] = field(default_factory=list)  # (file name, bytes); only what is kept
-    error: str = ""  # a seed whose scene could not run (reported, counted as a failure)
+    error: str = ""  # a seed whose scene could not be placed: the task file's one line (counted as a failure)
+    reason: str = ""  # why it failed (PLACEMENT, TASK_NOT_DONE); "" for a success
 
 
 @dataclass
@@ -120,6 +129,8 @@ class GenerateSummary:
     resumed_from: int = 0  # kept episodes of this run already in --out when it started (a re-run resumes)
     seeds_skipped: list[int] = field(default_factory=list)  # seeds already kept or failed there: not run again
     error: str = ""  # the write error that stopped it ('<file>: <cause>'), "" when none
+    failures: dict[str, int] = field(default_factory=dict)  # failed attempts by reason (PLACEMENT, TASK_NOT_DONE)
+    placement_error: str = ""  # the task file's line for the first seed it could not place, "" when none
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -129,6 +140,8 @@ class GenerateSummary:
                f"({self.success_rate:.0%} success, {self.episodes_per_min:.1f} episodes/min, "
                f"{self.workers} {'Ray' if self.backend == 'ray' else 'local'} workers)")
         out += f"; resumed from {self.resumed_from} episodes already there" if self.seeds_skipped else ""
+        out += ("; failed: " + ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in sorted(self.failures.items()))
+                if self.failures else "")
         out += f"; {self.stopped_early}" if self.stopped_early else ""
         return out + ("; interrupted" if self.interrupted else "")
 
@@ -157,11 +170,14 @@ def load_sources(paths: Iterable[str | Path], log: Callable[[str], None] | None 
         if len(kinds) > 1:
             found = ", ".join(f"{name} is {s}/{r} at {hz:g} Hz" for (s, r, hz), name in kinds.items())
             raise GenerateError(f"sources must share one scene, robot and control rate: {found}")
-        if len(ep.meta.arms) != 1:
+        task = _task_of(ep)
+        two_arm = task is not None and any(spec.arm for spec in task.subtasks)  # its subtasks are per arm
+        if len(ep.meta.arms) != 1 and not two_arm:
             raise GenerateError(f"{path.name}: generation drives one arm; this episode has {len(ep.meta.arms)}")
         episodes.append(ep)
     annotated = [(ep, read_subtasks(ep.path, ep.steps)) for ep in episodes]
     found = [(ep, subtasks or auto_subtasks(ep), subtasks is None) for ep, subtasks in annotated]
+    constraints = task.constraints if two_arm else ()
     sources: list[SourceDemo] = []
     for ep, subtasks, auto in found:
         if auto:
@@ -170,15 +186,39 @@ def load_sources(paths: Iterable[str | Path], log: Callable[[str], None] | None 
             except OSError:
                 pass  # a read-only source: the annotations are used, not kept
             if log is not None:
-                log(f"{ep.path.name}: annotated automatically ({', '.join(s.object for s in subtasks)})")
-        sources.append(SourceDemo(str(ep.path), tuple(segments_of(ep, subtasks))))
+                log(f"{ep.path.name}: annotated automatically ({_objects(subtasks)})")
+        if not two_arm:
+            sources.append(SourceDemo(str(ep.path), tuple(segments_of(ep, subtasks))))
+            continue
+        if not all(s.arm for s in subtasks):
+            raise GenerateError(f"{ep.path.name}: a two-arm task's source must be annotated per arm "
+                                f"(stored: {_objects(subtasks)}); annotate it again")
+        arms = cut_arms(ep, subtasks, constraints)
+        sources.append(SourceDemo(str(ep.path), tuple(seg for segs in arms.segments for seg in segs), arms))
     objects = {tuple(seg.object for seg in s.segments) for s in sources}
     if len(objects) > 1:
         raise GenerateError(f"sources are annotated with different subtasks: {sorted(objects)}")
     ((scene, robot, hz),) = kinds
+    refs = tuple(arm_refs(constraints, sources[0].arms.arms)) if two_arm else ()
     job = Job(scene=scene, robot=robot, control_hz=hz, sources=tuple(sources), formats=("mcap",), keep_failures=False,
-              task_file=episodes[0].meta.extra.get(TASK_FILE_KEY))
+              task_file=episodes[0].meta.extra.get(TASK_FILE_KEY), constraints=refs)
     return job, sources
+
+
+def _task_of(ep):
+    """The task an episode recorded (its embedded task file, else by name), None when there is none."""
+    try:
+        return task_for_episode(ep.meta.scene, ep.meta.extra)
+    except TeleopError:
+        return None
+
+
+def _objects(subtasks) -> str:
+    """"cube, bin", or per arm "left: cube, world; right: cube"."""
+    groups: dict[str, list[str]] = {}
+    for s in subtasks:
+        groups.setdefault(s.arm, []).append(s.object)
+    return "; ".join(f"{arm}: " * bool(arm) + ", ".join(objs) for arm, objs in groups.items())
 
 
 # -- the worker -----------------------------------------------------------------
@@ -188,26 +228,48 @@ def run_attempt(job: Job, seed: int, index: int, workdir: Path) -> Attempt:
     """Generate, record and check one seed; the episode's bytes come back if it is kept."""
     try:
         session = job.session(seed)
-    except TeleopError as exc:
-        return Attempt(seed, index, False, 0, (), error=first_line(exc))
+    except PlacementError as exc:  # this seed only; any other task-file error is the run's, and stops it
+        return Attempt(seed, index, False, 0, (), error=first_line(exc), reason=PLACEMENT)
     rng = np.random.default_rng([seed, 0x6E6])  # which source serves each subtask, among the nearest
-    n_subtasks = len(job.sources[0].segments)
-    chosen = choose_segments(session, [[src.segments[i] for src in job.sources] for i in range(n_subtasks)], rng)
+    two_arm = job.sources[0].arms
+    if two_arm is None:
+        n_subtasks = len(job.sources[0].segments)
+        chosen = choose_segments(session, [[src.segments[i] for src in job.sources] for i in range(n_subtasks)], rng)
+        device: PlanDevice | ArmsPlanDevice = PlanDevice(session, chosen, settle_s=job.settle_s)
+        per_arm: dict = {}
+    else:
+        by_arm = choose_arm_segments(session, [src.arms for src in job.sources], job.constraints, rng, job.source_per_arm)
+        chosen = [seg for segs in by_arm for seg in segs]
+        device = ArmsPlanDevice(session, by_arm, job.constraints, settle_s=job.settle_s)
+        per_arm = {"arms": {arm: {"subtasks": [seg.object for seg in segs], "sources": [seg.source for seg in segs]}
+                            for arm, segs in zip(two_arm.arms, by_arm)},
+                   "constraints": [{"kind": kind, "subtasks": [[two_arm.arms[k], i] for k, i in refs]}
+                                   for kind, refs in job.constraints],
+                   "source_per_arm": job.source_per_arm}
     names = tuple(dict.fromkeys(seg.source for seg in chosen))
     provenance = {
         "source_episodes": names,
         "generator": {"name": GENERATOR, "version": GENERATOR_VERSION, "seed": seed,
                       "subtasks": [seg.object for seg in chosen], "sources": [seg.source for seg in chosen],
-                      "settle_s": job.settle_s},
+                      "settle_s": job.settle_s, **per_arm},
     }
     out = workdir / f"seed{seed}"
     recorder = Recorder(session, out, formats=job.formats, verify="sync", source="generated", provenance=provenance)
     recorder.next_index = index
     with recorder:
-        result = run_episode(session, [PlanDevice(session, chosen, settle_s=job.settle_s)], max_steps=job.max_steps)
-    attempt = Attempt(seed, index, result.success, result.steps, names, bit_exact=result.replay_bit_exact)
+        result = run_episode(session, [device], max_steps=job.max_steps)
+    attempt = Attempt(seed, index, result.success, result.steps, names, bit_exact=result.replay_bit_exact,
+                      reason="" if result.success else TASK_NOT_DONE)
     if result.success or job.keep_failures:
         attempt.files = [(p.name, p.read_bytes()) for p in recorder.paths]
+        if two_arm is not None and result.steps > 0:  # annotated per arm as generated: where each subtask began
+            subtasks = generated_subtasks(device, two_arm.arms, result.steps)  # type: ignore[arg-type]
+            for p in recorder.paths:
+                try:
+                    side = write_subtasks(p, subtasks, result.steps, by="generator")
+                except AnnotationError:  # an arm that never began a subtask: the episode stays, unannotated
+                    break
+                attempt.files.append((side.name, side.read_bytes()))
     shutil.rmtree(out, ignore_errors=True)
     return attempt
 
@@ -241,6 +303,7 @@ class GenerateOptions:
     force_new: bool = False  # start a new run in an --out that holds another run's (or other) episodes
     force: bool = False  # go on when the free space looks too small for the episodes asked
     variation: Variation | None = None  # `--vary physics`: each seed's physics drawn into its scene, recorded
+    source_per_arm: bool = False  # `--source-per-arm`: a two-arm task's arms choose their sources each on its own
 
 
 def generate(sources: Iterable[str | Path], opts: GenerateOptions,
@@ -270,14 +333,19 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
         connect_ray(opts.ray)
     stub, sources = load_sources(sources, log)
     job = Job(stub.scene, stub.robot, stub.control_hz, tuple(sources), tuple(opts.formats), opts.keep_failures,
-              task_file=stub.task_file, variation=opts.variation)
-    if opts.variation is not None and opts.variation.physics:
-        job.session(opts.seed)  # a range the task cannot take answers now, in one line, not in every worker
+              task_file=stub.task_file, variation=opts.variation, constraints=stub.constraints,
+              source_per_arm=opts.source_per_arm)
+    try:  # a task file or a --vary range the task cannot take answers now, in one line, not in every worker
+        job.session(opts.seed)
+    except PlacementError:
+        pass  # that seed alone: a failure (reason "placement") when its turn comes
     max_attempts = opts.max_attempts or 10 * opts.num + 10
     try:
         identity = run_identity(sources, opts.seed, opts.formats, opts.keep_failures, GENERATOR_VERSION)
         if opts.variation is not None and opts.variation.physics:  # only then: journals from before stay resumable
             identity["variation"] = {k: v for k, v in opts.variation.to_json().items() if k in ("kinds", "overrides", "split")}
+        if opts.source_per_arm and sources[0].arms is not None:  # only then: other journals stay resumable
+            identity["source_per_arm"] = True
         journal = Journal(opts.out, identity, force_new=opts.force_new, log=log)
     except WriteError as exc:
         exc.summary = GenerateSummary()  # type: ignore[attr-defined]
@@ -315,6 +383,8 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
         summary.seconds = round(time.perf_counter() - t_start, 3)
         summary.success_rate = round(summary.successes / summary.attempts, 4) if summary.attempts else 0.0
         summary.episodes_per_min = round(60.0 * summary.successes / work, 2) if work > 0 else 0.0
+    if summary.placement_error:  # a defect of the task file, not of generation: said once, with the file's line
+        log(f"{summary.failures[PLACEMENT]} seeds could not be placed (first: {summary.placement_error})")
     kept = summary.resumed_from + summary.successes
     if kept < opts.num and not summary.interrupted:
         summary.stopped_early = (f"stopped after {summary.attempts} attempts (the bound) with "
@@ -388,10 +458,13 @@ def _take(attempt: Attempt, opts: GenerateOptions, journal: Journal, summary: Ge
     if attempt.success:
         summary.successes += 1
         summary.seeds.append(attempt.seed)
-    elif attempt.files:
-        summary.failures_kept += 1
-    summary.files.extend(map(str, written))
-    journal.record(attempt.seed, attempt.success, written)
+    else:
+        summary.failures_kept += bool(attempt.files)
+        summary.failures[attempt.reason] = summary.failures.get(attempt.reason, 0) + 1
+        if attempt.reason == PLACEMENT and not summary.placement_error:
+            summary.placement_error = f"seed {attempt.seed}: {attempt.error}"
+    summary.files.extend(str(p) for p in written if not p.name.endswith(SIDECAR_SUFFIX))  # episodes, not their subtasks
+    journal.record(attempt.seed, attempt.success, written, reason=attempt.reason, error=attempt.error)
     if attempt.success and summary.successes == 1 and not opts.force:
         _check_space(opts, sum(len(data) for _, data in attempt.files), opts.num - summary.resumed_from - 1)
 

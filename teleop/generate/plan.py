@@ -1,7 +1,7 @@
 """One generated demonstration: source segments moved into a new scene and executed.
 
 MimicGen's method, on our recordings. A source episode is cut into its
-object-centric subtasks (recorder.annotations); each subtask's segment keeps
+object-centric subtasks (replay.subtasks.sidecar); each subtask's segment keeps
 the EE target poses the operator drove (world frame) and the pose of the
 subtask's reference object at the segment's first step. In a new scene, when a
 subtask begins, its segment is carried into the object's new pose,
@@ -27,9 +27,9 @@ import numpy as np
 
 from devices.command import Command
 from devices.script import slerp
-from recorder.annotations import Subtask
 from replay.episode import Episode
-from scenes.tasks import object_pose
+from replay.subtasks.sidecar import Subtask
+from scenes.tasks.registry import object_pose
 
 REACH_SPEED = 0.2  # m/s on average of the interpolation to a segment's first pose (a held object stays held)
 TURN_SPEED = 1.5  # rad/s of the same
@@ -63,6 +63,25 @@ def matrix_to_pose(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
     return 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+
+
+def reach_ticks(p0: np.ndarray, q0: np.ndarray, p1: np.ndarray, q1: np.ndarray, dt: float) -> int:
+    """Ticks (of dt s) of the interpolation from pose 0 to pose 1, at REACH_SPEED / TURN_SPEED, MIN_REACH_S at least."""
+    dist = float(np.linalg.norm(p1 - p0))
+    return max(int(math.ceil(max(dist / REACH_SPEED, _angle(q0, q1) / TURN_SPEED, MIN_REACH_S) / dt)), 1)
+
+
+def reach_path(p0: np.ndarray, q0: np.ndarray, p1: np.ndarray, q1: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """n poses (position m, wxyz quaternion) from pose 0 to pose 1: smoothstep in time, lifted in an arc."""
+    arc = min(ARC_HEIGHT, 0.5 * float(np.linalg.norm(p1 - p0)))
+    out = []
+    for i in range(1, n + 1):
+        u = i / n
+        s = u * u * (3.0 - 2.0 * u)  # smoothstep: starts and ends at rest
+        p = p0 + s * (p1 - p0)
+        p[2] += arc * math.sin(math.pi * s)
+        out.append((p, slerp(q0, q1, s)))
+    return out
 
 
 @dataclass(frozen=True)
@@ -133,12 +152,12 @@ def choose_segments(session, candidates: Sequence[Sequence[Segment]], rng: np.ra
     send the arm on a long detour with the object in hand (MimicGen's
     nearest-neighbour selection, measured on the robot's side).
     """
-    here = pose_to_matrix(np.concatenate(session.target_pose(arm)))
+    here = pose_to_matrix(np.concatenate(session.controller.target_pose(arm)))
     chosen = []
     for options in candidates:
         carried = []
         for seg in options:
-            pos, mat = object_pose(session.model, session.data, seg.object)
+            pos, mat = object_pose(session.controller.model, session.controller.data, seg.object)
             carried.append(homogeneous(pos, mat) @ np.linalg.inv(seg.object_pose) @ seg.poses[[0, -1]])
         dist = np.array([np.linalg.norm(c[0][:3, 3] - here[:3, 3]) for c in carried])
         near = np.nonzero(dist <= dist.min() + NEAR_M)[0]
@@ -181,25 +200,17 @@ class PlanDevice:
     @property
     def finished(self) -> bool:
         done = self._next >= len(self.segments) and not self._queue
-        return done and (self._settled >= self.settle_ticks or (self._settled > 0 and self.session.success()))
+        return done and (self._settled >= self.settle_ticks or (self._settled > 0 and self.session.controller.success()))
 
     def _plan(self, seg: Segment) -> None:
         """Queue the interpolation to `seg` carried into the object's current pose, then the segment."""
-        pos, mat = object_pose(self.session.model, self.session.data, seg.object)
+        pos, mat = object_pose(self.session.controller.model, self.session.controller.data, seg.object)
         moved = homogeneous(pos, mat) @ np.linalg.inv(seg.object_pose) @ seg.poses
-        p0, q0 = self.session.target_pose(self.arm)
+        p0, q0 = self.session.controller.target_pose(self.arm)
         p1, q1 = matrix_to_pose(moved[0])
-        dist = float(np.linalg.norm(p1 - p0))
-        dt = self.session.dt
-        n = max(int(math.ceil(max(dist / REACH_SPEED, _angle(q0, q1) / TURN_SPEED, MIN_REACH_S) / dt)), 1)
+        n = reach_ticks(p0, q0, p1, q1, self.session.dt)
         hold = self._gripper_open if self._gripper_open is not None else bool(seg.gripper_open[0])
-        arc = min(ARC_HEIGHT, 0.5 * dist)
-        for i in range(1, n + 1):
-            u = i / n
-            s = u * u * (3.0 - 2.0 * u)  # smoothstep: starts and ends at rest
-            p = p0 + s * (p1 - p0)
-            p[2] += arc * math.sin(math.pi * s)
-            self._queue.append((p, slerp(q0, q1, s), hold))
+        self._queue.extend((p, q, hold) for p, q in reach_path(p0, q0, p1, q1, n))
         for t, open_ in zip(moved, seg.gripper_open):
             p, q = matrix_to_pose(t)
             self._queue.append((p, q, bool(open_)))

@@ -30,7 +30,8 @@ from scenes.errors import TeleopError
 
 JOURNAL = ".generate.jsonl"
 FORMAT = 1
-SAME = ("generator_version", "sources", "subtasks", "seed", "formats", "keep_failures", "variation")  # a resume must share these
+SAME = ("generator_version", "sources", "subtasks", "seed", "formats", "keep_failures", "variation",
+        "source_per_arm")  # a resume must share these
 
 
 class ResumeRefused(TeleopError, ValueError):
@@ -169,9 +170,15 @@ class Journal:
 
     # -- writing ------------------------------------------------------------------
 
-    def record(self, seed: int, success: bool, files: Sequence[str]) -> None:
-        """Append one attempt's line (after its files have landed); one write, so a kill cuts at most it."""
-        line = json.dumps({"seed": seed, "success": success, "files": [Path(f).name for f in files]}) + "\n"
+    def record(self, seed: int, success: bool, files: Sequence[str], reason: str = "", error: str = "") -> None:
+        """Append one attempt's line (after its files have landed); one write, so a kill cuts at most it.
+        A failure carries its reason ("placement", "task_not_done") and, when there is one, the task's line."""
+        entry: dict = {"seed": seed, "success": success, "files": [Path(f).name for f in files]}
+        if not success:
+            entry["reason"] = reason or "unknown"
+        if error:
+            entry["error"] = error
+        line = json.dumps(entry) + "\n"
         try:
             with open(self.path, "a") as f:
                 f.write(line)
@@ -181,7 +188,8 @@ class Journal:
 
 def _words(keys: list[str]) -> list[str]:
     names = {"generator_version": "generator version", "sources": "sources", "subtasks": "source subtasks",
-             "seed": "--seed", "formats": "--format", "keep_failures": "--keep-failures", "variation": "--vary"}
+             "seed": "--seed", "formats": "--format", "keep_failures": "--keep-failures", "variation": "--vary",
+             "source_per_arm": "--source-per-arm"}
     return [names.get(k, k) for k in keys] or ["options"]
 
 

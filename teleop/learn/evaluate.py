@@ -12,7 +12,7 @@ bit-exact and opens in `teleop replay --serve` like any other.
 
 Every episode also says how far it got (`reached`: the task's subtasks completed in
 order, by `teleop annotate`'s rules) and, when it failed, why (`failure`: never
-grasped, dropped, not placed, not at rest, timeout; replay/annotate.py), counted
+grasped, dropped, not placed, not at rest, timeout; replay/subtasks/annotate.py), counted
 over the run in `failure_breakdown`.
 """
 
@@ -32,11 +32,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 import numpy as np
 
 from recorder import RecorderError
-from replay.annotate import FAILURE_REASONS, progress_of
-from replay.export.frames import feature_key
+from replay.subtasks.annotate import FAILURE_REASONS, progress_of
+from replay.features import feature_key
 from scenes import RobotSpec
 from scenes.errors import TeleopError, first_line
-from scenes.variation import HELD_OUT_BASE, Variation, eval_look_seed, looks_kinds, physics_kinds
+from scenes.vary.variation import HELD_OUT_BASE, Variation, eval_look_seed, looks_kinds, physics_kinds
 from teleop.learn.gym_env import DEFAULT_MAX_SECONDS, TeleopEnv
 from teleop.learn.policy import IMAGE_PREFIX, Policy, PolicyMismatch
 from teleop.control.recording import Recorder, arm_metas
@@ -81,7 +81,7 @@ class EvalOptions:
     verify: str = "sync"  # the recorder's check of each saved rollout ("off" to skip)
     progress: bool = False  # a progress bar on stderr
     on_episode: Callable[["EpisodeOutcome"], None] | None = None
-    # Physics and looks varied per episode (scenes.variation), from held-out seeds unless variation.split is "train".
+    # Physics and looks varied per episode (scenes.vary.variation), from held-out seeds unless variation.split is "train".
     variation: Variation | None = None
 
 
@@ -96,7 +96,7 @@ class EpisodeOutcome:
     file: str | None = None  # the recorded episode's first file
     replay_bit_exact: bool | None = None  # the recorder's check of it (None: not recorded or not checked)
     reached: list[str] = field(default_factory=list)  # subtasks completed in order, e.g. ["grasp cube"]
-    failure: str | None = None  # why it failed (a replay.annotate.FAILURE_REASONS key); None: success
+    failure: str | None = None  # why it failed (a replay.subtasks.annotate.FAILURE_REASONS key); None: success
     variation: dict | None = None  # its scene's physics and its cameras' look (None: not varied)
 
 
@@ -270,11 +270,11 @@ def _gripper_open(env: TeleopEnv) -> float:
 
 
 def _progress_of(env: TeleopEnv, states: list[np.ndarray], gripper: list[float], success: bool):
-    """How far the rollout got through the task's subtasks, and why it failed (replay/annotate.py)."""
+    """How far the rollout got through the task's subtasks, and why it failed (replay/subtasks/annotate.py)."""
     session = env.unwrapped.session
     specs = session.scene.task.subtasks
     arm = arm_metas(session.controller)[0]
-    return progress_of(session.model, np.asarray(states), np.asarray(gripper), arm, specs, success)
+    return progress_of(session.controller.model, np.asarray(states), np.asarray(gripper), arm, specs, success)
 
 
 def run_rollout(env: TeleopEnv, policy: Policy, seed: int, recorder: Recorder | None) -> EpisodeOutcome:

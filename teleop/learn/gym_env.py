@@ -1,6 +1,6 @@
 """A task scene as a Gymnasium environment, observed and driven as the export records it.
 
-Observations and actions are the LeRobot export's (replay/export/frames.py):
+Observations and actions are the LeRobot export's (replay/features.py):
 the same feature names and vector layouts, computed the same way. Each
 observation restores the session's state into a scratch MjData and
 mj_forward-s it, as the export replays a recorded state, then builds the
@@ -33,13 +33,15 @@ import mujoco
 import numpy as np
 
 from devices.command import Command
-from recorder.format import EpisodeMeta
-from replay.export.dataset import DEFAULT_CAMERAS, ExportError, resolve_cameras, parse_cameras
-from replay.export.frames import ACTION_MODES, ENV_STATE, ArmLayout, FrameBuilder, ObjectLayout, feature_key, object_layout, robot_layout
+from replay.episode import EpisodeMeta
+from replay.features import (
+    ACTION_MODES, DEFAULT_CAMERAS, ENV_STATE, ArmLayout, CameraChoiceError, FrameBuilder, ObjectLayout, feature_key, object_layout,
+    parse_cameras, resolve_cameras, robot_layout,
+)
 from replay.render import FastRenderer
 from scenes import RobotSpec
-from scenes.variation import Variation, eval_look_seed, looks_kinds, task_ranges
-from scenes.vary_looks import apply_looks, sample_looks
+from scenes.vary.variation import Variation, eval_look_seed, looks_kinds, task_ranges
+from scenes.vary.looks import apply_looks, sample_looks
 from teleop.errors import EnvError
 from teleop.learn.gym_spaces import make_spaces
 from teleop.control.recording import arm_metas
@@ -84,7 +86,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
     and wxyz quaternion in the robot's base frame), as the export writes it by default.
     seed: the scene seed of the first reset without one; reset(seed=s) builds
     the scene for seed s, a reset without a seed the next seed.
-    variation: physics drawn into each seed's scene, and looks (scenes.vary_looks) its cameras are
+    variation: physics drawn into each seed's scene, and looks (scenes.vary.looks) its cameras are
     rendered with, from the look seed `eval_look_seed(looks_seed, split)` and the scene seed
     (`variation_json()` says what each episode got).
     """
@@ -123,7 +125,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         wanted = parse_cameras(cameras) if isinstance(cameras, str) else None if cameras is None else list(cameras)
         try:
             self.cameras = resolve_cameras(wanted, have)
-        except ExportError as exc:
+        except CameraChoiceError as exc:
             raise EnvError(str(exc)) from None
         self.render_camera = (self.cameras or [c for c in (*DEFAULT_CAMERAS, *have) if c in have] or [""])[0]
         if render_mode is not None and not self.render_camera:
@@ -141,12 +143,12 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
 
     @property
     def model(self) -> mujoco.MjModel:
-        return self.session.model
+        return self.session.controller.model
 
     @property
     def data(self) -> mujoco.MjData:
         """The live physics state (read it; change it through `set_state`)."""
-        return self.session.data
+        return self.session.controller.data
 
     def _load(self) -> None:
         """Per built scene: the arms' layout, the export's frame builder, a scratch MjData, the renderer's model."""
@@ -188,7 +190,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
 
     def get_state(self) -> np.ndarray:
         """The live mjSTATE_INTEGRATION state, as episode files store each step's."""
-        state = np.empty(self.session.nstate)
+        state = np.empty(self.session.controller.nstate)
         mujoco.mj_getState(self.model, self.data, state, INTEGRATION)
         return state
 
@@ -198,8 +200,8 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         The EE targets follow the restored ctrl, so EE actions continue from there.
         """
         state = np.asarray(state, dtype=np.float64)
-        if state.shape != (self.session.nstate,):
-            raise EnvError(f"state has shape {state.shape}, this scene's has ({self.session.nstate},)")
+        if state.shape != (self.session.controller.nstate,):
+            raise EnvError(f"state has shape {state.shape}, this scene's has ({self.session.controller.nstate},)")
         mujoco.mj_setState(self.model, self.data, state, INTEGRATION)
         mujoco.mj_forward(self.model, self.data)
         self.session.controller.follow_ctrl()
@@ -209,7 +211,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
 
     def observe(self) -> Observation:
         """The observation of the live state, whoever stepped it (a served session between ticks)."""
-        if self.session.model is not self._loaded_model:  # the session was reset: a new model
+        if self.session.controller.model is not self._loaded_model:  # the session was reset: a new model
             self._load()
         return self._observe()
 
@@ -218,7 +220,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         mujoco.mj_getState(self.model, self.data, self._state, INTEGRATION)
         mujoco.mj_setState(self.model, self._scratch, self._state, INTEGRATION)
         mujoco.mj_forward(self.model, self._scratch)
-        targets = np.array([np.concatenate(self.session.target_pose(i)) for i in range(len(self.arms))])
+        targets = np.array([np.concatenate(self.session.controller.target_pose(i)) for i in range(len(self.arms))])
         frame = self._frames(self._scratch, self._scratch.ctrl, targets)
         obs = {"observation.state": frame["observation.state"], "observation.ee_pose": frame["observation.ee_pose"]}
         if ENV_STATE in frame:
@@ -240,7 +242,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         return {"physics": physics, "looks": self.look}
 
     def _info(self, success: bool) -> dict[str, Any]:
-        return {"is_success": success, "seed": self.session.seed, "time": self.session.time}
+        return {"is_success": success, "seed": self.session.seed, "time": self.session.controller.time}
 
     # --- gymnasium.Env -------------------------------------------------------
 
@@ -253,7 +255,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         self._load()
         self._steps = 0
         obs = self._observe()
-        return obs, self._info(self.session.success())
+        return obs, self._info(self.session.controller.success())
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool, bool, dict[str, Any]]:
         """One control tick under `action` (kept in the caller's precision: float64 stays exact)."""
@@ -266,7 +268,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         self.session.step(commands, ctrl=ctrl)
         self._steps += 1
         obs = self._observe()
-        success = self.session.success()
+        success = self.session.controller.success()
         truncated = self._steps >= self.max_steps
         return obs, 1.0 if success else 0.0, success, truncated, self._info(success)
 
@@ -321,7 +323,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
                 command = Command(target_pos=action[i : i + 3], target_quat=action[i + 3 : i + 7], arm=k, source="policy")
                 i += 7
             else:  # ee_delta: the export's (target - actual) in the world frame, added back to the actual pose
-                pos, quat = self.session.ee_pose(k)
+                pos, quat = self.session.controller.ee_pose(k)
                 command = Command(translation=action[i : i + 3], rotation=action[i + 3 : i + 6], target_pos=pos,
                                   target_quat=quat, frame="world", arm=k, source="policy")
                 i += 6

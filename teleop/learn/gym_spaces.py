@@ -1,6 +1,6 @@
 """Bounds of the Gymnasium spaces of a scene, in the export's vector layouts.
 
-Each vector is laid out as the LeRobot export lays it out (replay/export/frames.py:
+Each vector is laid out as the LeRobot export lays it out (replay/features.py:
 arms in recorded order, then concatenated); this module only says how far each
 entry can go, in its own units:
 
@@ -24,8 +24,8 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from replay.export.frames import ENV_STATE, ArmLayout, ObjectLayout, feature_key, features
-from scenes.arena import TABLE_TOP
+from replay.features import ENV_STATE, ArmLayout, ObjectLayout, feature_key, features
+from scenes.assembly.arena import TABLE_TOP
 from teleop.control.controller import Controller
 
 STATE_MARGIN = 0.25  # rad (or m) past a joint's range that the observed state may show

@@ -30,7 +30,7 @@ import numpy as np
 
 from devices.command import Command
 from devices.script import ScriptDevice
-from replay.export.frames import rotation_vector, is_channel_first
+from replay.features import rotation_vector, is_channel_first
 from scenes.errors import TeleopError
 
 if TYPE_CHECKING:  # annotations only
@@ -327,9 +327,10 @@ class ScriptedPolicy:
         if self._env is None:
             raise PolicyError("attach the policy to an environment first")
         session = self._env.session
+        self.script.check(session.controller)  # every name it uses, before the episode's first step
         self.script.restart()
-        self._targets = [tuple(np.array(v) for v in session.target_pose(k)) for k in range(session.n_arms)]
-        self._grippers = [1.0] * session.n_arms
+        self._targets = [tuple(np.array(v) for v in session.controller.target_pose(k)) for k in range(session.controller.n_arms)]
+        self._grippers = [1.0] * session.controller.n_arms
 
     def _apply(self, command: Command) -> None:
         pos, quat = self._targets[command.arm]
@@ -347,7 +348,7 @@ class ScriptedPolicy:
             raise PolicyError("attach the policy to an environment first")
         session = env.session
         if not self.script.finished:
-            for command in self.script.poll(session, session.dt):
+            for command in self.script.poll(session.controller, session.dt):
                 self._apply(command)
         parts: list[np.ndarray] = []
         for k, arm in enumerate(env.arms):
@@ -355,7 +356,7 @@ class ScriptedPolicy:
             if env.action_mode == "ee_pose":
                 parts += [pos, quat]
             else:  # ee_delta: target minus the actual EE pose, in the world frame
-                ee_pos, ee_quat = session.ee_pose(k)
+                ee_pos, ee_quat = session.controller.ee_pose(k)
                 parts += [pos - ee_pos, rotation_vector(quat, ee_quat)]
             if arm.gripper_id is not None:
                 parts.append(np.array([self._grippers[k]]))

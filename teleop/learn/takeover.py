@@ -27,12 +27,12 @@ from typing import Literal
 import numpy as np
 
 from devices.command import Command
-from recorder.format import CONTROL_HUMAN, CONTROL_POLICY
+from replay.episode import CONTROL_HUMAN, CONTROL_POLICY
 from scenes.errors import first_line
 from pathlib import Path
 
 from teleop.learn.gym_env import TeleopEnv
-from replay.export.frames import feature_key
+from replay.features import feature_key
 from teleop.learn.policy import LeRobotPolicy, Policy, PolicyMismatch, ScriptedPolicy
 from teleop.control.session import Session
 
@@ -54,7 +54,7 @@ def moves_arm(command: Command) -> bool:
 
 @dataclass(frozen=True)
 class Handover:
-    """One change of driver: at which tick of the scene (session.steps), to whom, and why."""
+    """One change of driver: at which tick of the scene (session.controller.steps), to whom, and why."""
 
     step: int
     driver: Driver
@@ -77,7 +77,7 @@ class Takeover:
         self.operator_steps = 0
         self._inference_s: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
         self._observe_s: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
-        self._model = session.model
+        self._model = session.controller.model
         self._requests: collections.deque[Driver] = collections.deque()  # from the panel's threads
         policy.attach(env)
         policy.reset()
@@ -101,8 +101,8 @@ class Takeover:
     def steer(self, session: Session, commands: Sequence[Command]) -> tuple[list[Command], np.ndarray | None]:
         """This tick's (commands, ctrl) for Session.step: the devices' own, or theirs plus the policy's action."""
         commands = list(commands)
-        if session.model is not self._model:  # reset between ticks (a button): a new scene
-            self._model = session.model
+        if session.controller.model is not self._model:  # reset between ticks (a button): a new scene
+            self._model = session.controller.model
             self._switch("policy", "new scene")
         while self._requests:
             wanted = self._requests.popleft()
@@ -125,7 +125,7 @@ class Takeover:
             extra, ctrl = self.env.to_step(np.asarray(action, dtype=np.float64))
         except Exception as exc:  # noqa: BLE001 - a failing policy hands control to the operator, never stops the loop
             self.problem = first_line(exc)
-            session.note(f"policy stopped: {self.problem}")
+            session.stats.note(f"policy stopped: {self.problem}")
             self._switch("operator", "policy failed")
             self._tell_recorder()
             return commands, None
@@ -136,15 +136,15 @@ class Takeover:
 
     def _switch(self, driver: Driver, reason: str) -> None:
         if driver == "policy" and self.problem is not None:
-            self.session.note(f"the policy cannot drive again: {self.problem}")
+            self.session.stats.note(f"the policy cannot drive again: {self.problem}")
             return
         if driver == "policy":
             self.policy.reset()  # a fresh start from where the arm is: no stale action chunk
         if driver == self.driver:
             return
         self.driver = driver
-        self.handovers.append(Handover(self.session.steps, driver, reason))
-        self.session.note(f"{'policy' if driver == 'policy' else 'operator'} driving ({reason})")
+        self.handovers.append(Handover(self.session.controller.steps, driver, reason))
+        self.session.stats.note(f"{'policy' if driver == 'policy' else 'operator'} driving ({reason})")
 
     def _tell_recorder(self) -> None:
         recorder = self.session.recorder

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -67,9 +68,12 @@ class WebApp:
         takeover: "Takeover | None" = None,
         token: str | None = None,
         page_keyboard: bool = False,
+        headline: Callable[[], str] | None = None,
+        draw_unwatched: bool = True,
     ) -> None:
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
+        self.headline = headline  # a line of markdown shown under the task (a campaign's progress), asked at 4 Hz
         self.devices = list(devices)
         self.device_problems = list(device_problems)
         self.host, self.port = host, port
@@ -93,7 +97,7 @@ class WebApp:
         if page_keyboard:
             keyboard = next((d for d in self.devices if isinstance(d, KeyboardDevice)), None)
             if keyboard is None:
-                keyboard = PageKeyboardDevice(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
+                keyboard = PageKeyboardDevice(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.controller.n_arms)
                 keyboard.start()
                 self.devices.append(keyboard)
             self.page_keys = PageKeys(keyboard)
@@ -121,6 +125,7 @@ class WebApp:
                              steer=takeover.steer if takeover is not None else None)
         self.sim.on_saved = self._on_saved
         self.drawer = SceneDrawer(self.server, self.sim, self.gizmo)
+        self.drawer.only_watched = not draw_unwatched  # a campaign's sessions draw only for a browser
         self.panel = Panel(self.server, self, tuple(session.scene.cameras), pos_speed, rot_speed)
         self.camera: CameraFeed | None = None
         if camera and session.scene.cameras:
@@ -229,7 +234,7 @@ class WebApp:
             del self._messages[:-20]
 
     def notes(self) -> list[str]:
-        return [*self.session.messages[-5:], *self._messages[-5:]]
+        return [*self.session.stats.messages[-5:], *self._messages[-5:]]
 
     @property
     def verified(self) -> dict[str, bool | None]:
@@ -291,6 +296,7 @@ class WebApp:
             "episodes_saved": snap.episodes_saved,
             "episodes_discarded": snap.episodes_discarded,
             "saved_files": [str(p) for p in session.recorder.paths] if session.recorder is not None else [],
+            "record_dir": str(session.recorder.directory) if session.recorder is not None else None,
             "verified": self.verified,
             "recording_error": snap.recording_error,
             "success": snap.success,
@@ -306,6 +312,7 @@ class WebApp:
             "web_update_ms": round(self.drawer.update_ms(), 3),
             "web_updates": self.drawer.updates,
             "latency_ms": None if self.drawer.latency_ms is None else round(self.drawer.latency_ms, 2),
+            "key_to_tick_ms": [round(v, 2) for v in list(self.sim.tick_latency_ms)[-50:]],  # the newest, oldest first
             "gizmo_drags": self.gizmo.drags if self.gizmo is not None else 0,
             "camera_frames": self.camera.frames if self.camera is not None else 0,
             "camera_problem": self.camera.problem if self.camera is not None else None,
@@ -318,6 +325,7 @@ class WebApp:
             "driver": self.takeover.driver if self.takeover is not None else "operator",
             "policy": self.takeover.status() if self.takeover is not None else None,
             "notes": self.notes(),
+            "headline": self.headline() if self.headline is not None else None,
             "error": self.sim.error,
         }
 

@@ -97,6 +97,7 @@ class SceneDrawer(LoopThread):
         self.latency_ms: float | None = None
         self._last_input = 0.0
         self._last_tick = -1
+        self.only_watched = False  # True: no updates while no browser is connected (a campaign's thrift)
         self._init_thread("teleop-draw")
         self._update_lock = threading.Lock()
         snap = sim.snapshot
@@ -131,7 +132,8 @@ class SceneDrawer(LoopThread):
         next_frame = time.perf_counter()
         while not self._stop.is_set():
             snap = self.sim.snapshot
-            if snap.tick != self._last_tick or snap.generation != self._generation:
+            watched = not self.only_watched or bool(self.server.get_clients())
+            if watched and (snap.tick != self._last_tick or snap.generation != self._generation):
                 try:
                     self.draw(snap)
                 except Exception as exc:  # noqa: BLE001 - a drawing hiccup must not end the session
@@ -140,8 +142,9 @@ class SceneDrawer(LoopThread):
                 self._stop.wait(max(0.0, next_frame - time.perf_counter()))
                 if time.perf_counter() - next_frame > self.period:
                     next_frame = time.perf_counter()
-            else:
-                self._stop.wait(0.002)
+            else:  # no new tick: sleep until the loop ticks (no polling: a session's idle wake-ups cost CPU)
+                self.sim.ticked.wait(0.05)
+                self.sim.ticked.clear()
                 next_frame = max(next_frame, time.perf_counter() - self.period)
 
     # -- one update ------------------------------------------------------

@@ -44,6 +44,12 @@ class PageKeyboardDevice(KeyboardDevice):
     def start(self) -> None:
         self._closed = False
 
+    @property
+    def last_input_time(self) -> float:
+        """When a key last went down in a page (devices.base.InputStamped): the page's input-to-drawn latency
+        and the campaign bench's key latency start there."""
+        return self.keys.last_press_time
+
     def status(self) -> str:
         return "closed" if self._closed else self.describe()
 

@@ -101,8 +101,8 @@ class Panel(LoopThread):
             self.reset_btn = gui.add_button("Reset", hint="new object placement (next seed); saves an episode in progress")
             self.episode_md = gui.add_markdown(self._episode_text(snap))
         self.gripper_buttons: list[tuple[viser.GuiButtonHandle, viser.GuiButtonHandle]] = []
-        for arm in range(app.session.n_arms):
-            title = "Gripper" if app.session.n_arms == 1 else f"Gripper (arm {arm})"
+        for arm in range(app.session.controller.n_arms):
+            title = "Gripper" if app.session.controller.n_arms == 1 else f"Gripper (arm {arm})"
             with gui.add_folder(title):
                 self.gripper_buttons.append((gui.add_button("Open"), gui.add_button("Close")))
         with gui.add_folder("Loop"):
@@ -124,7 +124,7 @@ class Panel(LoopThread):
                 # The page's script asks the browser for the device in this click (WebHID needs a user gesture).
                 gui.add_button(CONNECT_SPACEMOUSE, hint="a SpaceMouse plugged into this computer (WebHID: Chrome, Edge)")
             if app.phone_url is not None:
-                gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see README)")
+                gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see docs/session.md)")
             if app.page_inputs.gamepad is not None:
                 gui.add_markdown("Gamepad: " + " · ".join(f"**{control}** {action}" for control, action in GAMEPAD_MAPPING))
         self.notes_md = gui.add_markdown("")
@@ -191,7 +191,8 @@ class Panel(LoopThread):
     def _task_text(self, snap) -> str:
         s = self.app.session
         state = "**succeeding**" if snap.success else "not yet"
-        return f"**Task:** {s.scene.instruction}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
+        text = f"**Task:** {s.scene.instruction}  \n**Success:** {state} · scene `{s.scene_name}` · robot `{s.robot.name}` · seed {snap.seed}"
+        return text if self.app.headline is None else f"{text}  \n{self.app.headline()}"
 
     def _policy_text(self) -> str:
         t = self.app.takeover

@@ -5,7 +5,7 @@ proportion to their length (steps) with the shown step marked. The Subtasks
 folder lists them (steps and seconds) and edits them: move the chosen boundary
 (to the slider's step, or to a typed step), add one at the slider's step,
 remove one, change the object of the subtask under the slider, and save the
-sidecar file (`recorder.annotations.write_subtasks`, by "human").
+sidecar file (`replay.subtasks.sidecar.write_subtasks`, by "human").
 
 Every value from the browser is checked here before it is used (a dropdown
 value must be one of its options, a step a whole number inside the episode),
@@ -24,10 +24,10 @@ from collections.abc import Callable
 
 import mujoco
 
-from recorder.annotations import AnnotationError, Subtask, sidecar_path, write_subtasks
 from recorder.disk import cause
 from replay.episode import Episode
-from replay.subtask_edit import SubtaskEdits, initial_subtasks, object_choices
+from replay.subtasks.edit import SubtaskEdits, initial_subtasks, object_choices
+from replay.subtasks.sidecar import AnnotationError, Subtask, sidecar_path, write_subtasks
 
 PALETTE = ("#4c78a8", "#f58518", "#54a24b", "#b279a2", "#e45756", "#72b7b2", "#eeca3b", "#9d755d")
 NO_BOUNDARY = "(no boundary)"
@@ -111,6 +111,10 @@ class SubtaskPanel:
         with gui.add_folder("Subtasks"):
             self.listing = gui.add_markdown("")
             self.status = gui.add_markdown("")
+            self.arm_dd = None
+            if len(self.edits.arms) > 1:  # a two-arm task: each arm's subtasks are edited on their own
+                self.arm_dd = gui.add_dropdown("Arm", options=tuple(self.edits.arms), initial_value=self.edits.arm,
+                                               hint="whose subtasks the bar, the listing and the buttons show")
             self.boundary_dd = gui.add_dropdown("Boundary", options=(NO_BOUNDARY,),
                                                 hint="pick a boundary: the view jumps to it")
             self.boundary_step = gui.add_number("At step", initial_value=0, min=0, max=max(self.episode.steps - 1, 1),
@@ -124,6 +128,8 @@ class SubtaskPanel:
             self.object_btn = gui.add_button("Set object here", hint="the subtask under the slider becomes relative to Object")
             self.save_btn = gui.add_button("Save", hint=f"write {sidecar_path(self.episode.path).name}")
         self.boundary_dd.on_update(self._on_pick_boundary)
+        if self.arm_dd is not None:
+            self.arm_dd.on_update(self._on_pick_arm)
         self.boundary_step.on_update(self._on_boundary_step)
         self.move_btn.on_click(lambda _: self._edit(lambda: self._move(self._chosen(), self.current_step())))
         self.remove_btn.on_click(lambda _: self._edit(self._remove))
@@ -230,6 +236,19 @@ class SubtaskPanel:
             raise AnnotationError(f"{value!r} is not an object of this scene")
         return value
 
+    def _on_pick_arm(self, event) -> None:
+        if event.client_id is None:
+            return
+        with self._lock:
+            try:
+                self.edits.select_arm(str(self.arm_dd.value))
+            except AnnotationError as exc:
+                self.message = f"refused: {exc}"
+            else:
+                self.message = f"editing the {self.edits.arm} arm's subtasks"
+            self._refresh(select=0)
+        self.jump(self.current_step())
+
     def _on_pick_boundary(self, event) -> None:
         if event.client_id is None:  # set by the server itself (after an edit)
             return
@@ -272,7 +291,7 @@ class SubtaskPanel:
         """Write the sidecar file (by "human"); a failure is shown, not raised."""
         with self._lock:
             try:
-                path = write_subtasks(self.episode.path, self.edits.subtasks, self.episode.steps, by="human")
+                path = write_subtasks(self.episode.path, self.edits.all_subtasks, self.episode.steps, by="human")
             except AnnotationError as exc:
                 self.message = f"not saved: {exc}"
             except OSError as exc:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 from devices.base import Device
 from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
-from replay.parallel import shielded
+from scenes.workers import shielded
 from teleop.control.session import Session
 from teleop.web.access import resolve_token
 from teleop.web.app import WebApp
@@ -47,6 +47,8 @@ def serve(
     token: str | None = None,
     no_token: bool = False,
     page_keyboard: bool | None = None,
+    headline: Callable[[], str] | None = None,
+    draw_unwatched: bool = True,
     stop: threading.Event | None = None,
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C or `stop` is set; returns 0, or 1 if the loop failed.
@@ -65,6 +67,9 @@ def serve(
     no_token: serve a non-loopback host with no token (trusted networks; warns on stderr).
     page_keyboard: keys typed in the page drive as the keyboard does (default: when a keyboard
     is among `devices`, started or not).
+    headline: a line of markdown the panel shows under the task, asked a few times a second
+    (a campaign's progress: teleop/campaign/progress.py).
+    draw_unwatched: send scene updates with no browser connected (False: none then, saving the CPU).
     """
     token = resolve_token(host, token, no_token)  # a bad combination fails before anything starts
     check_port_free(host, port)
@@ -74,7 +79,7 @@ def serve(
         page_keyboard = asks_for_keyboard(words) or any(d.kind == "keyboard" for d in started)
     problems = list(problems)
     if words:
-        options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.n_arms)
+        options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.controller.n_arms)
         opened, failed = open_devices(",".join(words), options, require_any=False, require_known=True)
         started += opened
         problems += failed
@@ -89,7 +94,7 @@ def serve(
             takeover = _takeover(session, policy, policy_device)
         app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
                      pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token,
-                     page_keyboard=page_keyboard)
+                     page_keyboard=page_keyboard, headline=headline, draw_unwatched=draw_unwatched)
     except BaseException:
         for d in started:
             d.close()

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from devices.base import InputStamped
 from teleop.control.controller import StepResult
 from teleop.control.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
 from teleop.control.session import Session
@@ -85,11 +86,16 @@ class SimThread(LoopThread):
         self._actions: queue.SimpleQueue[Callable[[Session], None]] = queue.SimpleQueue()
         self._init_thread("teleop-sim")
         self._generation = 0
-        self._model = session.model
+        self._model = session.controller.model
         self._ticks = 0
         self._tick_times: collections.deque[float] = collections.deque()
         self._compute_s: collections.deque[float] = collections.deque(maxlen=300)
         self._input_time = 0.0
+        # Key-to-tick latency: from a stamped input's arrival (devices.base.InputStamped) to the end of the tick
+        # that applied it, ms (the last ones, for a median or p95).
+        self.tick_latency_ms: collections.deque[float] = collections.deque(maxlen=200)
+        self.ticked = threading.Event()  # set after every tick: the drawer waits on it instead of polling
+        self._stamped = [d for d in self.devices if isinstance(d, InputStamped)]  # checked once: a Protocol check is slow
         self._saved_seen = len(session.recorder.paths) if session.recorder is not None else 0
         self._tick_start = 0.0
         self.pacer = Pacer(session.dt, self._stop)
@@ -182,8 +188,12 @@ class SimThread(LoopThread):
         self._run_actions()
 
     def _after_tick(self, session: Session, result: StepResult) -> None:
-        # Devices that stamp their input (the browser gizmo) let the page show input-to-display latency.
-        self._input_time = max(self._input_time, newest_input_time(self.devices))
+        # Devices that stamp their input (the browser gizmo, keys typed in a page) let the page show
+        # input-to-display latency, and the status the key-to-tick latency.
+        newest = newest_input_time(self._stamped)
+        if newest > self._input_time:
+            self.tick_latency_ms.append((time.monotonic() - newest) * 1000.0)
+            self._input_time = newest
         self.sim_seconds += session.dt
         self._ticks += 1
         self._check_saved()
@@ -193,6 +203,7 @@ class SimThread(LoopThread):
         self._tick_times.append(stamp)
         while self._tick_times and stamp - self._tick_times[0] > RATE_WINDOW_S:
             self._tick_times.popleft()
+        self.ticked.set()
 
     def _run_actions(self) -> None:
         while True:
@@ -203,7 +214,7 @@ class SimThread(LoopThread):
             try:
                 action(self.session)
             except Exception as exc:  # noqa: BLE001 - a failed button must not stop the loop
-                self.session.note(f"{type(exc).__name__}: {exc}")
+                self.session.stats.note(f"{type(exc).__name__}: {exc}")
             self._check_saved()
 
     def _check_saved(self) -> None:
@@ -217,30 +228,31 @@ class SimThread(LoopThread):
 
     def _snapshot(self) -> Snapshot:
         s = self.session
-        if s.model is not self._model:
-            self._model = s.model
+        c = s.controller  # the tick's state; a reset replaces it with the next scene's
+        if c.model is not self._model:
+            self._model = c.model
             self._generation += 1
-        data = s.data
+        data = c.data
         recorder = s.recorder
         return Snapshot(
             tick=self._ticks,
             generation=self._generation,
-            model=s.model,
+            model=c.model,
             seed=s.seed,
             sim_time=float(data.time),
             qpos=data.qpos.copy(),
             mocap_pos=data.mocap_pos.copy(),
             mocap_quat=data.mocap_quat.copy(),
-            targets=tuple(s.target_pose(i) for i in range(s.n_arms)),
-            ee=tuple(s.ee_pose(i) for i in range(s.n_arms)),
-            tracking_error_m=(s.tracking_errors[-1].copy() if s.tracking_errors else np.zeros(s.n_arms)),
-            gripper_open=tuple(a.gripper_open for a in s.arms),
-            success=bool(s.success()),
+            targets=tuple(c.target_pose(i) for i in range(c.n_arms)),
+            ee=tuple(c.ee_pose(i) for i in range(c.n_arms)),
+            tracking_error_m=(c.tracking_errors[-1].copy() if c.tracking_errors else np.zeros(c.n_arms)),
+            gripper_open=tuple(a.gripper_open for a in c.arms),
+            success=bool(c.success()),
             recording=recorder is not None and recorder.recording,
             recording_error=recorder.error if recorder is not None else None,
             episode_steps=recorder.steps if recorder is not None else 0,
             episodes_saved=recorder.episodes_saved if recorder is not None else 0,
             episodes_discarded=recorder.episodes_discarded if recorder is not None else 0,
-            ik_failures=s.ik_failures,
+            ik_failures=s.stats.ik_failures,
             input_time=self._input_time,
         )

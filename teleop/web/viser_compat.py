@@ -47,6 +47,19 @@ ServeWrap = Callable[[Handler, "ProcessRequest | None"], "tuple[Handler, Process
 INDEX_PATHS = ("/", "/index.html")  # where viser answers its page
 FIXED_DPR_PARAM = "fixedDpr"  # ?fixedDpr=0.5: viser's client draws its canvas at 0.5 device pixels per CSS pixel
 GUI_BUTTON_SELECTOR = "button"  # the element a viser GUI button is drawn as; its text is the button's label
+WEBSOCKET_PROTOCOL = f"viser-v{viser.__version__}"  # the subprotocol a client of viser's websocket must ask for
+
+
+def viewer_camera_message() -> bytes:
+    """The message a page sends when its 3D view opens (msgpack, viser's ViewerCameraMessage). viser counts a
+    client as connected, and sends it scene updates, from its first one: a client of the websocket that is not a
+    browser (the campaign bench's watching pages) sends it to be watched like one."""
+    import msgspec.msgpack  # viser's own wire format
+
+    return msgspec.msgpack.encode({
+        "type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [1.5, 0.0, 1.0], "fov": 0.9,
+        "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 800, "look_at": [0.0, 0.0, 0.0],
+        "up_direction": [0.0, 0.0, 1.0]})
 
 
 def run_javascript(client: viser.ClientHandle, source: str) -> None:

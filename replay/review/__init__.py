@@ -1,0 +1,7 @@
+"""Reviewing recorded episodes: videos rendered from their exact replay, quality flags, verdicts.
+
+`video` renders and encodes (`teleop video`), `overlay` draws the strip under each
+frame, `quality` computes each episode's flags and scores, `verdicts` keeps a
+reviewer's verdict in a sidecar beside the episode, and `listing` gathers the rows
+of the review page (`teleop review`), cached beside the episodes.
+"""

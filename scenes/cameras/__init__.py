@@ -1,0 +1,1 @@
+"""Cameras: projection and view geometry, the per-object pixel figure, extra cameras given on the command line."""

@@ -1,0 +1,46 @@
+"""The session flags `teleop run` and `teleop serve` share, and the Session and devices they ask for.
+
+What the flags open is teleop/control/session_setup.py's; here the flags are read.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+
+from devices.base import Device
+from teleop.cli.variation_args import add_physics_args, variation_from
+from teleop.control.session import Session
+from teleop.control.session_setup import check_record_dir, open_session, open_session_devices
+
+
+def add_session_args(p: argparse.ArgumentParser) -> None:
+    """Flags shared by `run` and `serve`."""
+    p.add_argument("--scene", default="lift", help="task scene (default lift; see `teleop scenes`)")
+    p.add_argument("--robot", default="panda", help="built-in robot name or PATH.toml (default panda)")
+    p.add_argument("--seed", type=int, default=0, help="object placement seed (default 0)")
+    p.add_argument("--control-hz", type=float, default=30.0, help="control rate in Hz (default 30)")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR", help="record episodes into DIR")
+    p.add_argument("--format", default="mcap", choices=("mcap", "hdf5", "both"), help="recording format (default mcap)")
+    p.add_argument("--no-verify", action="store_true", help="skip the exact-replay check after each saved episode")
+    p.add_argument("--pos-speed", type=float, default=0.15, help="hold-to-move speed, m/s (default 0.15)")
+    p.add_argument("--rot-speed", type=float, default=0.8, help="hold-to-rotate speed, rad/s (default 0.8)")
+    add_physics_args(p)
+
+
+def session_from(args: argparse.Namespace, verify: str = "sync", on_error: str = "raise") -> Session:
+    """The Session of the shared flags, recording into --record when given."""
+    check_record_dir(args.record)
+    variation = variation_from(args, "generation")  # a bad --vary word or range: one line, before the scene builds
+    return open_session(
+        args.scene, args.robot, args.seed, args.control_hz, variation=variation, record=args.record,
+        formats=("mcap", "hdf5") if args.format == "both" else (args.format,),
+        verify="off" if args.no_verify else verify, on_error=on_error,
+    )
+
+
+def devices_from(args: argparse.Namespace, n_arms: int, serving: bool = False,
+                 log: Callable[[str], None] | None = None) -> tuple[list[Device], list[str]]:
+    """The devices of --device at --pos-speed / --rot-speed (see open_session_devices)."""
+    return open_session_devices(args.device, n_arms, args.pos_speed, args.rot_speed, serving=serving, log=log)
