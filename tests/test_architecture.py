@@ -212,11 +212,12 @@ REPLAY_ALLOWED: dict[str, set[str]] = {
     "engine": {"errors", "episode"},                          # exact replay and resimulation
     "judge": {"errors", "episode"},                           # success judged on recorded states
     "render": {"errors"},                                     # offscreen rendering
+    "handoff": set(),                                         # queues between threads that may be told to stop
     "features": {"errors", "episode"},                        # the observation and action schema
     "subtasks": {"errors", "episode"},                        # sidecar files, auto-annotation, hand edits
     "summary": {"episode", "subtasks", "review"},             # what `teleop inspect` shows (quality flags too)
-    "export": {"errors", "episode", "engine", "render", "features", "review", "subtasks"},  # LeRobot datasets (what passed review)
-    "review": {"errors", "episode", "engine", "judge", "render", "features", "subtasks"},  # reviewing episodes
+    "export": {"errors", "episode", "engine", "render", "handoff", "features", "review", "subtasks"},  # LeRobot datasets (what passed review)
+    "review": {"errors", "episode", "engine", "judge", "render", "handoff", "features", "subtasks"},  # reviewing episodes
     "__init__": {"engine", "episode"},                        # `import replay`
 }
 

@@ -31,6 +31,7 @@ from replay.engine import replay_states
 from replay.episode import Episode
 from replay.features import ENV_STATE, INTERVENTION, FrameBuilder, intervention_values, object_layout, robot_layout
 from replay.export.review_meta import SUBTASK_INDEX
+from replay.handoff import put_unless
 from replay.render import FastRenderer
 from scenes.cameras.extra import ExtraCamera
 
@@ -86,19 +87,6 @@ class _Job:
 
 
 _DONE = object()
-
-
-def _put_unless(out: queue.Queue, item, stop: threading.Event) -> bool:
-    """Queue an item unless `stop` is set (the consumer has gone); False: stop producing."""
-    while not stop.is_set():
-        try:
-            out.put(item, timeout=0.1)
-            return True
-        except queue.Full:
-            continue
-    return False
-
-
 WORKER_AHEAD = 16  # frames a render worker may run ahead of the stream's thread
 
 
@@ -142,7 +130,7 @@ class _RenderWorker:
         self._thread.join()
 
     def _put(self, item) -> bool:
-        return _put_unless(self._out, item, self._stop)
+        return put_unless(self._out, item, self._stop)
 
     def _run(self, model: mujoco.MjModel, size: tuple[int, int]) -> None:
         try:
@@ -246,7 +234,7 @@ class FrameStream:
     # -- the thread -----------------------------------------------------------
 
     def _put(self, item) -> bool:
-        return _put_unless(self._queue, item, self._stop)
+        return put_unless(self._queue, item, self._stop)
 
     def _run(self, model: mujoco.MjModel, size: tuple[int, int], cameras: list[str]) -> None:
         renderer = None

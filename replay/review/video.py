@@ -24,6 +24,7 @@ import numpy as np
 
 from replay.episode import CONTROL_POLICY, Episode, EpisodeError, find_episodes, load_episode
 from replay.features import CameraChoiceError, resolve_cameras
+from replay.handoff import get_unless, put_unless
 from replay.judge import judge_steps
 from replay.render import FastRenderer
 from replay.review.encode import VideoError, VideoWriter, check_writable, video_format
@@ -117,27 +118,6 @@ def step_infos(episode: Episode, success: np.ndarray | None = None) -> tuple[Tim
     infos = [StepInfo(k, k * dt, int(current[k]) if current[k] >= 0 else None, drivers[k], bool(success[k]))
              for k in range(episode.steps)]
     return timeline, infos
-
-
-def put_unless(out: queue.Queue, item, stop: threading.Event) -> bool:
-    """Queue an item unless `stop` is set first; False: stop producing."""
-    while not stop.is_set():
-        try:
-            out.put(item, timeout=0.1)
-            return True
-        except queue.Full:
-            continue
-    return False
-
-
-def get_unless(source: queue.Queue, stop: threading.Event):
-    """The next item, or None once `stop` is set."""
-    while not stop.is_set():
-        try:
-            return source.get(timeout=0.1)
-        except queue.Empty:
-            continue
-    return None
 
 
 class EpisodeFrames:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from scenes.workers.cluster import ClusterError, connect_ray
 from teleop.campaign.operator_session import SessionSpec
-from teleop.campaign.sessions import free_port
+from teleop.campaign.sessions import SessionFiles, free_port
 from teleop.web.net import is_loopback
 
 START_TIMEOUT_S = 60.0  # an actor waits this long for a free CPU on the cluster
@@ -79,7 +79,7 @@ class SessionActor:
 
 
 @dataclass
-class RaySession:
+class RaySession(SessionFiles):
     """A session run by a SessionActor, as the lobby sees it (the same calls as sessions.LiveSession)."""
 
     spec: SessionSpec
@@ -89,10 +89,6 @@ class RaySession:
     ray: object = field(repr=False)
     started: float = field(default_factory=time.monotonic)
     ended_at: float | None = None
-
-    @property
-    def id(self) -> str:
-        return self.spec.session
 
     @property
     def pid(self) -> int:
@@ -116,27 +112,6 @@ class RaySession:
         if not running:
             self.ended_at = time.monotonic()
         return running
-
-    @property
-    def minutes(self) -> float:
-        end = self.ended_at if self.ended_at is not None else time.monotonic()
-        return (end - self.started) / 60.0
-
-    def status(self) -> dict:
-        try:
-            return json.loads(Path(self.spec.status_file).read_text())
-        except (OSError, ValueError):
-            return {}
-
-    def ready(self) -> bool:
-        return self.live and self.status().get("tick", 0) > 0
-
-    def last_log_line(self) -> str:
-        try:
-            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
-        except OSError:
-            return ""
-        return lines[-1][:300] if lines else ""
 
     def _call(self, method: str, *args, timeout_s: float = 10.0):
         try:

@@ -37,8 +37,49 @@ def free_port(host: str) -> int:
         return s.getsockname()[1]
 
 
+class SessionFiles:
+    """What the lobby reads of a session from the files it writes (its status file and its log), for a
+    session process here (LiveSession) and one a Ray actor runs (ray_sessions.RaySession) alike."""
+
+    spec: SessionSpec
+    log_path: Path
+    started: float
+    ended_at: float | None
+
+    @property
+    def id(self) -> str:
+        return self.spec.session
+
+    @property
+    def live(self) -> bool:
+        raise NotImplementedError
+
+    @property
+    def minutes(self) -> float:
+        """Minutes from its start to its end (to now until `live` has seen it end)."""
+        end = self.ended_at if self.ended_at is not None else time.monotonic()
+        return (end - self.started) / 60.0
+
+    def status(self) -> dict:
+        """The session's own status file ({} before its first write)."""
+        try:
+            return json.loads(Path(self.spec.status_file).read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def ready(self) -> bool:
+        return self.live and self.status().get("tick", 0) > 0
+
+    def last_log_line(self) -> str:
+        try:
+            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
+        except OSError:
+            return ""
+        return lines[-1][:300] if lines else ""
+
+
 @dataclass
-class LiveSession:
+class LiveSession(SessionFiles):
     """One operator's session process, as the lobby sees it."""
 
     spec: SessionSpec
@@ -46,10 +87,6 @@ class LiveSession:
     log_path: Path
     started: float = field(default_factory=time.monotonic)
     ended_at: float | None = None
-
-    @property
-    def id(self) -> str:
-        return self.spec.session
 
     @property
     def pid(self) -> int:
@@ -71,28 +108,6 @@ class LiveSession:
         if self.ended_at is None:
             self.ended_at = time.monotonic()
         return False
-
-    @property
-    def minutes(self) -> float:
-        end = self.ended_at if not self.live and self.ended_at is not None else time.monotonic()
-        return (end - self.started) / 60.0
-
-    def status(self) -> dict:
-        """The session's own status file ({} before its first write)."""
-        try:
-            return json.loads(Path(self.spec.status_file).read_text())
-        except (OSError, ValueError):
-            return {}
-
-    def ready(self) -> bool:
-        return self.live and self.status().get("tick", 0) > 0
-
-    def last_log_line(self) -> str:
-        try:
-            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
-        except OSError:
-            return ""
-        return lines[-1][:300] if lines else ""
 
     def end(self) -> None:
         """Ask the session to stop (it saves an episode in progress, marked incomplete)."""
