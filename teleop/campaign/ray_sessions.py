@@ -22,7 +22,7 @@ from pathlib import Path
 
 from scenes.workers.cluster import ClusterError, connect_ray
 from teleop.campaign.operator_session import SessionSpec
-from teleop.campaign.sessions import SessionFiles, free_port
+from teleop.campaign.session_files import SessionFiles, free_port
 from teleop.web.net import is_loopback
 
 START_TIMEOUT_S = 60.0  # an actor waits this long for a free CPU on the cluster

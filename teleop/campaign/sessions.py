@@ -14,7 +14,6 @@ import json
 import os
 import secrets
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,57 +24,10 @@ from pathlib import Path
 from teleop.campaign.file import Campaign, CampaignTask
 from teleop.campaign.ledger import state_dir
 from teleop.campaign.operator_session import SessionSpec
+from teleop.campaign.session_files import SessionFiles, free_port
 
 READY_TIMEOUT_S = 180.0  # import + scene compile on a loaded 2-core machine
 STOP_TIMEOUT_S = 30.0  # an episode in progress is saved before a session exits
-
-
-def free_port(host: str) -> int:
-    """A port nothing listens on now (the session binds it a moment later)."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-class SessionFiles:
-    """What the lobby reads of a session from the files it writes (its status file and its log), for a
-    session process here (LiveSession) and one a Ray actor runs (ray_sessions.RaySession) alike."""
-
-    spec: SessionSpec
-    log_path: Path
-    started: float
-    ended_at: float | None
-
-    @property
-    def id(self) -> str:
-        return self.spec.session
-
-    @property
-    def live(self) -> bool:
-        raise NotImplementedError
-
-    @property
-    def minutes(self) -> float:
-        """Minutes from its start to its end (to now until `live` has seen it end)."""
-        end = self.ended_at if self.ended_at is not None else time.monotonic()
-        return (end - self.started) / 60.0
-
-    def status(self) -> dict:
-        """The session's own status file ({} before its first write)."""
-        try:
-            return json.loads(Path(self.spec.status_file).read_text())
-        except (OSError, ValueError):
-            return {}
-
-    def ready(self) -> bool:
-        return self.live and self.status().get("tick", 0) > 0
-
-    def last_log_line(self) -> str:
-        try:
-            lines = [line for line in self.log_path.read_text(errors="replace").splitlines() if line.strip()]
-        except OSError:
-            return ""
-        return lines[-1][:300] if lines else ""
 
 
 @dataclass
