@@ -32,7 +32,7 @@ from pathlib import Path
 
 from tests.support import CAMPAIGN_ADMIN, CampaignProcess, campaign_session_status
 
-LADDER = (4, 8, 12, 16, 24, 32, 40, 48)
+LADDER = (4, 8, 12, 16, 20, 24, 32, 40, 48)
 QUICK_LADDER = (2,)
 DRIVE_S, QUICK_DRIVE_S = 30.0, 6.0
 SAMPLE_S = 0.5

@@ -212,12 +212,13 @@ REPLAY_ALLOWED: dict[str, set[str]] = {
     "engine": {"errors", "episode"},                          # exact replay and resimulation
     "judge": {"errors", "episode"},                           # success judged on recorded states
     "render": {"errors"},                                     # offscreen rendering
+    "render_pool": {"render"},                                # GL contexts kept warm across episodes
     "handoff": set(),                                         # queues between threads that may be told to stop
     "features": {"errors", "episode"},                        # the observation and action schema
     "subtasks": {"errors", "episode"},                        # sidecar files, auto-annotation, hand edits
     "summary": {"episode", "subtasks", "review"},             # what `teleop inspect` shows (quality flags too)
     "export": {"errors", "episode", "engine", "render", "handoff", "features", "review", "subtasks"},  # LeRobot datasets (what passed review)
-    "review": {"errors", "episode", "engine", "judge", "render", "handoff", "features", "subtasks"},  # reviewing episodes
+    "review": {"errors", "episode", "engine", "judge", "render", "render_pool", "handoff", "features", "subtasks"},  # reviewing episodes
     "__init__": {"engine", "episode"},                        # `import replay`
 }
 

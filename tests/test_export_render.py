@@ -109,3 +109,41 @@ def test_the_export_stream_renders_cameras_in_two_threads_as_one_renderer_does(e
                 expected = renderer.render(data, c, channel_first=(c == 1))
                 for frame in (frames[k], frames[episode.steps + k]):
                     np.testing.assert_array_equal(frame[key], expected, err_msg=f"step {k} {key}")
+
+
+def test_a_pooled_renderer_is_lent_again_in_another_thread_and_draws_what_a_fresh_one_does(episode):
+    """replay.render_pool: a renderer given back is lent to the next use of its size, in another thread, with
+    another camera (one GL context made, not two), and its images equal a fresh renderer's, pixel for pixel."""
+    import threading
+
+    from replay.render_pool import RendererPool
+
+    model = episode.build_model()
+    import copy
+
+    picks = [copy.copy(data) for k, data in replay_states(episode, model) if k in (0, episode.steps // 2)]
+    assert len(picks) == 2
+    pool = RendererPool(keep=2)
+    got: dict[str, list[np.ndarray]] = {}
+
+    def use(camera: str) -> None:
+        with pool.renderer(model, 48, 40, [camera]) as renderer:
+            got[camera] = [renderer.render(data, 0) for data in picks]
+
+    for camera in ("front", "wrist"):
+        worker = threading.Thread(target=use, args=(camera,))
+        worker.start()
+        worker.join()
+    assert (pool.created, pool.lent) == (1, 2)
+    with pool.renderer(model, 32, 24, ["front"]):  # another size: a renderer of its own
+        pass
+    assert (pool.created, pool.lent) == (2, 3)
+    with FastRenderer(model, 48, 40, ["front", "wrist"]) as fresh:
+        for c, camera in enumerate(("front", "wrist")):
+            for data, image in zip(picks, got[camera]):
+                np.testing.assert_array_equal(image, fresh.render(data, c), err_msg=camera)
+    with pytest.raises(RenderError, match="no camera 'nope'"):
+        with pool.renderer(model, 48, 40, ["nope"]):
+            pass
+    assert pool.created == 2  # the failed reload closed the lent renderer; nothing broken stays in the pool
+    pool.clear()

@@ -295,3 +295,39 @@ def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(s
             page.close()
         finally:
             browser.close()
+
+
+def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
+    """viser's property cast still compares hints with npt.NDArray[float...] (what the table stands for), and with
+    quick_array_casts a handle's properties come out as they did: the same dtypes and values, other hints unchanged."""
+    import numpy as np
+    from viser._assignable_props_api import AssignablePropsBase
+
+    from teleop.web.viser_compat import FLOAT_ARRAY_HINTS, quick_array_casts
+
+    original = getattr(AssignablePropsBase._cast_value_recursive, "original", AssignablePropsBase._cast_value_recursive)
+    source = inspect.getsource(original)
+    for name in ("float16", "float32", "float64"):
+        assert f"npt.NDArray[np.{name}]" in source, broken(
+            f"AssignablePropsBase._cast_value_recursive no longer special-cases npt.NDArray[np.{name}]",
+            "quick_array_casts (scene updates would cast differently from viser)")
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        axes = server.scene.add_batched_axes("/c", batched_wxyzs=np.tile([1.0, 0, 0, 0], (2, 1)),
+                                             batched_positions=np.zeros((2, 3)))
+        values = [np.arange(6.0).reshape(2, 3), [[1, 2, 3]], (0.5, 0.25, 0.125, 1.0), (np.ones(2), np.zeros(2))]
+        hints = [*FLOAT_ARRAY_HINTS, tuple[float, ...], tuple[np.ndarray, ...], int]
+        expected = [[original(axes, h, v, "batched_positions") for v in values] for h in hints]
+        quick_array_casts()
+        quick_array_casts()  # once per process: a second call keeps the first wrapper
+        cast = AssignablePropsBase._cast_value_recursive
+        assert getattr(cast, "quick", False) and cast.original is original
+        for h, row in zip(hints, expected):
+            for v, want in zip(values, row):
+                got = cast(axes, h, v, "batched_positions")
+                assert type(got) is type(want)
+                assert np.asarray(got).dtype == np.asarray(want).dtype and np.array_equal(np.asarray(got), np.asarray(want))
+        axes.batched_positions = np.ones((2, 3))  # float64 in: the handle's own dtype kept
+        assert axes.batched_positions.dtype == np.float32 and np.all(axes.batched_positions == 1.0)
+    finally:
+        server.stop()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import re
 import signal
@@ -12,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from replay.subtasks.sidecar import Subtask
+from replay.subtasks.sidecar import Subtask, sidecar_path
 from replay.subtasks.edit import EditRefused, SubtaskEdits, even_split
 from teleop.web.replay_subtasks import step_from_browser, timeline_html
 from tests import browser as headless
@@ -63,62 +65,76 @@ def _inspect_subtasks(path: Path) -> list[dict] | None:
     return json.loads(out)["subtasks"]
 
 
+def start_viewer(episode: Path, log_path: Path) -> tuple[subprocess.Popen, int]:
+    """`teleop replay EPISODE --serve` on a free port, returned once it printed its URL (its output goes to log_path)."""
+    port = headless.free_port()
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
+                                cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 60
+    while "open http" not in log_path.read_text():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(20)
+            raise AssertionError(f"the viewer did not start: {log_path.read_text()}")
+        time.sleep(0.2)
+    return proc, port
+
+
+def shows(page, pattern: str, timeout_s: float = 30.0) -> None:
+    """Wait until some element's text matches the regex `pattern` (a loaded machine draws slowly)."""
+    page.wait_for_function("(p) => [...document.querySelectorAll('*')]"
+                           ".some(e => new RegExp(p).test(e.textContent.trim()))",
+                           arg=pattern, timeout=timeout_s * 1000, polling=100)
+
+
+def go_to(page, step: int, hz: float = 30.0) -> None:
+    """Show `step` (typed in the Step slider's box) and wait for the time line of an episode at `hz`."""
+    box = page.locator("input.mantine-NumberInput-input:visible").first  # the Step slider's box
+    box.fill(str(step))
+    box.press("Enter")
+    shows(page, rf"^t = {step / hz:.2f} s")
+
+
+def pick(page, label: str, option: str) -> None:
+    """Choose `option` in the dropdown labelled `label` and wait until the page shows it chosen."""
+    page.get_by_label(label, exact=True).dispatch_event("click")
+    page.get_by_role("option", name=option, exact=True).dispatch_event("click")
+    page.wait_for_function("([l, o]) => [...document.querySelectorAll('input')].some("
+                           "i => i.value === o && i.id && document.querySelector(`label[for='${i.id}']`)"
+                           "?.textContent.trim() === l)", arg=[label, option], timeout=10000)
+
+
 def test_subtasks_are_edited_and_saved_in_the_browser(episode, tmp_path):
     import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     sidecar = episode.with_name(episode.name + ".subtasks.json")
     assert not sidecar.exists()
-    port = headless.free_port()
     log_path = tmp_path / "replay.log"
-    log = open(log_path, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
-                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    proc, port = start_viewer(episode, log_path)
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and "open http" not in log_path.read_text():
-            assert proc.poll() is None, log_path.read_text()
-            time.sleep(0.2)
         with playwright_api.sync_playwright() as p:
             browser = headless.launch(p)
             page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
 
-            def shows(pattern: str, timeout_s: float = 30.0) -> None:
-                """Wait until some element's text matches the regex `pattern` (a loaded machine draws slowly)."""
-                page.wait_for_function("(p) => [...document.querySelectorAll('*')]"
-                                       ".some(e => new RegExp(p).test(e.textContent.trim()))",
-                                       arg=pattern, timeout=timeout_s * 1000, polling=100)
-
-            def go_to(step: int) -> None:
-                box = page.locator("input.mantine-NumberInput-input:visible").first  # the Step slider's box
-                box.fill(str(step))
-                box.press("Enter")
-                shows(rf"^t = {step / 30:.2f} s")
-
-            def pick(label: str, option: str) -> None:
-                page.get_by_label(label, exact=True).dispatch_event("click")
-                page.get_by_role("option", name=option, exact=True).dispatch_event("click")
-                page.wait_for_function("([l, o]) => [...document.querySelectorAll('input')].some("
-                                       "i => i.value === o && i.id && document.querySelector(`label[for='${i.id}']`)"
-                                       "?.textContent.trim() === l)", arg=[label, option], timeout=10000)
-
             # the boundaries found from the gripper and contacts, listed and drawn under the timeline
             page.get_by_text("Subtasks").first.wait_for(timeout=20000)
-            shows(r"^cube steps 0-\d+ \(0\.00-")
-            shows(r"not saved yet")
+            shows(page, r"^cube steps 0-\d+ \(0\.00-")
+            shows(page, r"not saved yet")
             first = re.search(r"cube steps 0-(\d+)", page.locator("li").first.text_content()).group(1)
             assert page.locator("div[title^='2: cube_base']").count() == 1  # the bar's second segment
-            shows(r"cube \(1/2\)$")
+            shows(page, r"cube \(1/2\)$")
 
             # move the boundary to the shown step, refuse one outside its neighbours, save
-            go_to(100)
+            go_to(page, 100)
             assert int(first) != 100
-            shows(r"cube_base \(2/2\)$")
+            shows(page, r"cube_base \(2/2\)$")
             headless.click_button(page, "Move boundary here")
-            shows(r"^cube steps 0-100 \(0\.00-3\.33 s\)")
-            go_to(0)
+            shows(page, r"^cube steps 0-100 \(0\.00-3\.33 s\)")
+            go_to(page, 0)
             headless.click_button(page, "Move boundary here")
-            shows(r"refused: boundary 1 must stay between steps 0 and 255")
+            shows(page, r"refused: boundary 1 must stay between steps 0 and 255")
             headless.click_button(page, "Save")
-            shows(r"2 subtasks, saved to ")
+            shows(page, r"2 subtasks, saved to ")
             expected = [{"object": "cube", "start": 0, "end": 100}, {"object": "cube_base", "start": 100, "end": 255}]
             doc = json.loads(sidecar.read_text())
             assert doc["by"] == "human" and doc["subtasks"] == expected
@@ -127,28 +143,130 @@ def test_subtasks_are_edited_and_saved_in_the_browser(episode, tmp_path):
             # type a step for the chosen boundary
             step_box = page.get_by_label("At step", exact=True)
             step_box.fill("90")
-            shows(r"^cube steps 0-90 ")
-            shows(r"not saved yet")
+            shows(page, r"^cube steps 0-90 ")
+            shows(page, r"not saved yet")
 
             # remove it, then add one back with its object picked from the scene's
             headless.click_button(page, "Remove boundary")
-            shows(r"^cube steps 0-255 ")
-            shows(r"cube \(1/1\)$")
-            go_to(120)
-            pick("Object", "cube")
+            shows(page, r"^cube steps 0-255 ")
+            shows(page, r"cube \(1/1\)$")
+            go_to(page, 120)
+            pick(page, "Object", "cube")
             headless.click_button(page, "Add boundary here")
-            shows(r"^cube steps 120-255 ")
-            pick("Object", "cube_base")
+            shows(page, r"^cube steps 120-255 ")
+            pick(page, "Object", "cube_base")
             headless.click_button(page, "Set object here")
-            shows(r"^cube_base steps 120-255 ")
+            shows(page, r"^cube_base steps 120-255 ")
             headless.click_button(page, "Save")
-            shows(r"2 subtasks, saved to ")
+            shows(page, r"2 subtasks, saved to ")
             browser.close()
     finally:
         proc.send_signal(signal.SIGINT)
         code = proc.wait(20)
-        log.close()
     assert code == 0, log_path.read_text()
     expected = [{"object": "cube", "start": 0, "end": 120}, {"object": "cube_base", "start": 120, "end": 255}]
     assert json.loads(sidecar.read_text())["subtasks"] == expected
+    assert _inspect_subtasks(episode) == expected
+
+
+HANDOVER = REPO / "scenes" / "scripts" / "handover.json"  # the left arm lifts the cube, the right takes it over
+
+
+@pytest.fixture(scope="module")
+def two_arm_episode(tmp_path_factory) -> Path:
+    """A recorded `handover` (bimanual robot, seed 0, 30 Hz), annotated per arm by `teleop annotate --auto`."""
+    import teleop
+    from teleop.cli.entry import main
+
+    work = tmp_path_factory.mktemp("two_arm")
+    session = teleop.Session(scene="handover", robot="bimanual", seed=0, control_hz=30)
+    with teleop.Recorder(session, work, verify="off") as rec:
+        result = teleop.run_episode(session, [teleop.ScriptDevice(HANDOVER)])
+    assert result.success
+    (path,) = rec.paths
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["annotate", str(path), "--auto", "--json"]) == 0
+    assert json.loads(out.getvalue())["episodes"][0]["by"] == "auto"
+    return path
+
+
+def listed(page, lines: int) -> None:
+    """Wait until the Subtasks listing has `lines` lines (one per subtask of the arm being edited)."""
+    page.wait_for_function("(n) => document.querySelectorAll('li').length === n", arg=lines, timeout=15000)
+
+
+def on_bar(page, *segments: str) -> None:
+    """Wait until the timeline bar is exactly these segments ('i: object, steps a-b', its titles)."""
+    page.wait_for_function("(want) => { const got = [...document.querySelectorAll('div[title]')].map(d => d.title)"
+                           ".filter(t => /^\\d+: .*, steps \\d+-\\d+$/.test(t));"
+                           " return JSON.stringify(got) === JSON.stringify(want); }", arg=list(segments), timeout=15000)
+
+
+def test_each_arms_subtasks_are_edited_on_their_own_in_the_browser(two_arm_episode, tmp_path):
+    import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
+    episode = two_arm_episode
+    sidecar = sidecar_path(episode)
+    before = json.loads(sidecar.read_text())
+    steps = before["steps"]
+    left = [s for s in before["subtasks"] if s["arm"] == "left"]
+    right = [s for s in before["subtasks"] if s["arm"] == "right"]
+    assert [s["object"] for s in left] == ["cube", "world"] and [s["object"] for s in right] == ["cube"]
+    grasped = left[0]["end"]  # the left arm's one boundary
+    added, moved = 200, 250  # the right arm gets a boundary at step 200, then moves it to 250
+    assert steps > moved + 1 and grasped not in (added, moved)
+    log_path = tmp_path / "replay.log"
+    proc, port = start_viewer(episode, log_path)
+    try:
+        with playwright_api.sync_playwright() as p:
+            browser = headless.launch(p)
+            page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
+
+            # the panel starts on the left arm: its two stored subtasks, listed and on the bar
+            page.get_by_text("Subtasks").first.wait_for(timeout=20000)
+            shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
+            shows(page, rf"^world steps {grasped}-{steps} ")
+            shows(page, rf"^2 subtasks, from {re.escape(sidecar.name)}")
+            listed(page, 2)
+            on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
+            shows(page, r"cube \(1/2\)$")
+
+            # the right arm: its one subtask, nothing of the left arm's
+            pick(page, "Arm", "right")
+            shows(page, r"editing the right arm.s subtasks")  # markdown may curl the apostrophe
+            shows(page, rf"^cube steps 0-{steps} \(0\.00-")
+            listed(page, 1)
+            on_bar(page, f"1: cube, steps 0-{steps}")
+            shows(page, r"cube \(1/1\)$")
+
+            # give it a boundary, move that to the shown step, save
+            go_to(page, added)
+            pick(page, "Object", "world")
+            headless.click_button(page, "Add boundary here")
+            shows(page, rf"^world steps {added}-{steps} ")
+            go_to(page, moved)
+            headless.click_button(page, "Move boundary here")
+            shows(page, rf"^cube steps 0-{moved} \({0:.2f}-{moved / 30:.2f} s\)")
+            shows(page, rf"^world steps {moved}-{steps} ")
+            shows(page, r"world \(2/2\)$")
+            on_bar(page, f"1: cube, steps 0-{moved}", f"2: world, steps {moved}-{steps}")
+            headless.click_button(page, "Save")
+            shows(page, r"^2 subtasks, saved to ")
+
+            # back on the left arm: its subtasks as they were
+            pick(page, "Arm", "left")
+            shows(page, r"editing the left arm.s subtasks")
+            shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
+            shows(page, rf"^world steps {grasped}-{steps} ")
+            listed(page, 2)
+            on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
+            browser.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(20)
+    assert code == 0, log_path.read_text()
+    expected = [*left, {"object": "cube", "start": 0, "end": moved, "arm": "right"},
+                {"object": "world", "start": moved, "end": steps, "arm": "right"}]
+    doc = json.loads(sidecar.read_text())
+    assert doc["by"] == "human" and doc["steps"] == steps and doc["subtasks"] == expected
     assert _inspect_subtasks(episode) == expected

@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from replay.episode import Episode, find_episodes, load_episode
-from replay.render import FastRenderer
+from replay.render_pool import RENDERERS
 from replay.review.quality import long_outliers, quality, scores
 from replay.review.verdicts import read_verdict
 from replay.review.video import DEFAULT_SIZE, VideoOptions, choose_cameras, driver_labels, subtask_spans, write_episodes
@@ -213,7 +213,7 @@ def thumbnail(path: str | Path) -> bytes:
     data = mujoco.MjData(model)
     mujoco.mj_setState(model, data, episode.state[episode.steps // 2], mujoco.mjtState.mjSTATE_INTEGRATION)
     mujoco.mj_forward(model, data)
-    with _lock, FastRenderer(model, *THUMB_SIZE, [camera]) as renderer:
+    with _lock, RENDERERS.renderer(model, *THUMB_SIZE, [camera]) as renderer:
         body = png(renderer.render(data, 0))
     if store(cache, body):
         store(cache.with_name(cache.name + ".key"), key)

@@ -3,8 +3,8 @@
 Each control step's recorded state is restored (mj_setState, then kinematics and
 camera poses: nothing is re-simulated, so the video is exactly what was recorded)
 and rendered from each chosen camera at `size`; the cameras sit side by side and
-the strip (replay.review.overlay) goes under them. Rendering runs in a thread of
-its own, ahead of the encoder (MuJoCo and the encoder release the GIL, so on two
+the strip (replay.review.overlay) goes under them. Each camera renders in a thread
+of its own, ahead of the encoder (MuJoCo and the encoder release the GIL, so on two
 cores they overlap). Several episodes play one after another, or with `grid`
 tile one video, the shorter ones held on their last frame.
 """
@@ -24,9 +24,9 @@ import numpy as np
 
 from replay.episode import CONTROL_POLICY, Episode, EpisodeError, find_episodes, load_episode
 from replay.features import CameraChoiceError, resolve_cameras
-from replay.handoff import get_unless, put_unless
+from replay.handoff import put_unless
 from replay.judge import judge_steps
-from replay.render import FastRenderer
+from replay.render_pool import RENDERERS
 from replay.review.encode import VideoError, VideoWriter, check_writable, video_format
 from replay.review.overlay import STRIP_HEIGHT, Overlay, StepInfo, Timeline
 from replay.subtasks.sidecar import AnnotationError, read_subtasks
@@ -121,7 +121,7 @@ def step_infos(episode: Episode, success: np.ndarray | None = None) -> tuple[Tim
 
 
 class EpisodeFrames:
-    """An episode's composed frames (cameras side by side, the strip under them), rendered in a thread."""
+    """An episode's composed frames (cameras side by side, the strip under them), each camera rendered in a thread."""
 
     def __init__(self, episode: Episode, cameras: Sequence[str], size: tuple[int, int], overlay: bool = True) -> None:
         if episode.steps == 0:
@@ -141,9 +141,10 @@ class EpisodeFrames:
         return self.episode.steps
 
     def _camera(self, index: int, out: queue.Queue, stop: threading.Event) -> None:
-        """Render one camera at every recorded state into `out`, in this thread's own GL context."""
+        """Render one camera at every recorded state into `out`, in a GL context lent to this thread (kept warm
+        across videos: replay.render_pool)."""
         try:
-            with FastRenderer(self.model, *self.size, [self.cameras[index]]) as renderer:
+            with RENDERERS.renderer(self.model, *self.size, [self.cameras[index]]) as renderer:
                 data = mujoco.MjData(self.model)
                 spec = mujoco.mjtState.mjSTATE_INTEGRATION
                 for state in self.episode.state:
@@ -155,10 +156,12 @@ class EpisodeFrames:
         except BaseException as exc:  # noqa: BLE001 - raised again in the reading thread
             put_unless(out, exc, stop)
 
-    def _compose(self, out: queue.Queue, stop: threading.Event) -> None:
-        """Each camera renders in a thread of its own (two cameras in one thread take turns on a
-        CPU renderer); here their images are put side by side with the strip under them."""
+    def __iter__(self) -> Iterator[np.ndarray]:
+        """The frames in order. Each camera renders in a thread of its own (two cameras in one thread take
+        turns on a CPU renderer); their images are put side by side with the strip under them here, in the
+        reading thread, as the encoder takes them: a thread more for that only added waits for the GIL."""
         sources = [queue.Queue(maxsize=AHEAD) for _ in self.cameras]
+        stop = threading.Event()
         workers = [threading.Thread(target=self._camera, args=(c, q, stop), name=f"video-camera-{c}", daemon=True)
                    for c, q in enumerate(sources)]
         for worker in workers:
@@ -168,36 +171,17 @@ class EpisodeFrames:
             for k in range(self.episode.steps):
                 frame = np.empty((self.height, self.width, 3), np.uint8)
                 for c, source in enumerate(sources):
-                    image = get_unless(source, stop)
-                    if isinstance(image, BaseException) or image is None:
-                        put_unless(out, image, stop)
-                        return
+                    image = source.get()
+                    if isinstance(image, BaseException):
+                        raise image
                     frame[:h, c * w:(c + 1) * w] = image
                 if self.overlay is not None:
                     frame[h:] = self.overlay.strip(self.infos[k])
-                if not put_unless(out, frame, stop):
-                    return
-            put_unless(out, None, stop)
-        except BaseException as exc:  # noqa: BLE001 - raised again in the reading thread
-            put_unless(out, exc, stop)
+                yield frame
         finally:
             stop.set()  # the camera threads end (they are done, or the reader has gone)
             for worker in workers:
                 worker.join()
-
-    def __iter__(self) -> Iterator[np.ndarray]:
-        out: queue.Queue = queue.Queue(maxsize=AHEAD)
-        stop = threading.Event()
-        thread = threading.Thread(target=self._compose, args=(out, stop), name="video-frames", daemon=True)
-        thread.start()
-        try:
-            while (item := out.get()) is not None:
-                if isinstance(item, BaseException):
-                    raise item
-                yield item
-        finally:
-            stop.set()
-            thread.join()
 
 
 def tile(frames: Sequence[np.ndarray], cols: int) -> np.ndarray:

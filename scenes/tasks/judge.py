@@ -217,17 +217,32 @@ class Judge:
         return bool(abs(best - half_h) < 0.25 * half_h)
 
     def _p_grasped(self, data, a) -> bool:
-        """a touches two or more robot bodies (both fingers of a gripper)."""
-        m = self.model
-        mine = subtree(m, self._body(a))
-        touching = set()
-        for c in data.contact[: data.ncon]:
-            b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
-            if b1 in mine and b2 in self._robot:
-                touching.add(b2)
-            elif b2 in mine and b1 in self._robot:
-                touching.add(b1)
+        """a touches two or more robot bodies (both fingers of a gripper).
+
+        Checked every control tick, so on arrays: each contact's two bodies, looked up in a
+        per-object mask of a's bodies and one of the robot's (a loop over MjContact structs
+        cost ~0.2 ms a tick)."""
+        n = data.ncon
+        if n == 0:
+            return False
+        mine, robot = self._grasp_masks(a)
+        bodies = self.model.geom_bodyid[data.contact.geom[:n]]  # (n, 2)
+        b1, b2 = bodies[:, 0], bodies[:, 1]
+        touching = set(b2[mine[b1] & robot[b2]].tolist())
+        touching.update(b1[mine[b2] & robot[b1]].tolist())
         return len(touching) >= 2
+
+    def _grasp_masks(self, a: str) -> tuple[np.ndarray, np.ndarray]:
+        """(a's bodies, the robot's bodies) as boolean arrays over the model's bodies."""
+        key = ("grasp", a)
+        if key not in self._cache:
+            m = self.model
+            mine = np.zeros(m.nbody, bool)
+            mine[list(subtree(m, self._body(a)))] = True
+            robot = np.zeros(m.nbody, bool)
+            robot[list(self._robot)] = True
+            self._cache[key] = (mine, robot)
+        return self._cache[key]  # type: ignore[return-value]
 
 
 def _kinds(pred: Pred) -> tuple[str, ...]:

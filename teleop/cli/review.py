@@ -52,8 +52,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
+    from replay.render import rasterize_in_render_threads
     from replay.review.encode import VideoError, check_writable
     from replay.review.video import VideoOptions, parse_size, write_video
+
+    rasterize_in_render_threads()  # each camera renders in a thread of its own
 
     try:
         check_writable(args.out)
@@ -74,8 +77,11 @@ def cmd_video(args: argparse.Namespace) -> int:
 
 
 def cmd_review(args: argparse.Namespace) -> int:
+    from replay.render import rasterize_in_render_threads
     from teleop.web.access import resolve_token
     from teleop.web.review_server import serve_review
+
+    rasterize_in_render_threads()  # videos and thumbnails render in the page's request threads
 
     token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     if not args.folder.is_dir():

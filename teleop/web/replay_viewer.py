@@ -30,6 +30,7 @@ from teleop.web.access import Gate, resolve_token, start_guarded, url_with_token
 from teleop.web.drawing import Markers, place_camera
 from teleop.web.net import check_port_free, exposure_warning, page_url, remote_hint
 from teleop.web.replay_subtasks import SubtaskPanel
+from teleop.web.viser_compat import quick_array_casts
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
 VIEWER_REACH = "see this episode and overwrite its subtask file"  # for the --no-token warning
@@ -54,6 +55,7 @@ class EpisodeViewer:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         place_camera(server)
+        quick_array_casts()
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False
         n_arms = episode.ee_target.shape[1] if episode.ee_target.ndim == 3 else 0
