@@ -65,20 +65,30 @@ def _inspect_subtasks(path: Path) -> list[dict] | None:
     return json.loads(out)["subtasks"]
 
 
-def start_viewer(episode: Path, log_path: Path) -> tuple[subprocess.Popen, int]:
-    """`teleop replay EPISODE --serve` on a free port, returned once it printed its URL (its output goes to log_path)."""
+@contextlib.contextmanager
+def viewer_page(episode: Path, log_path: Path):
+    """`teleop replay EPISODE --serve` on a free port (its output in log_path) and a headless Chromium page on it,
+    once its Subtasks panel is drawn; afterwards the viewer is stopped by Ctrl-C and must exit 0."""
+    import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     port = headless.free_port()
     with open(log_path, "w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
                                 cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 60
-    while "open http" not in log_path.read_text():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.send_signal(signal.SIGINT)
-            proc.wait(20)
-            raise AssertionError(f"the viewer did not start: {log_path.read_text()}")
-        time.sleep(0.2)
-    return proc, port
+    try:
+        deadline = time.monotonic() + 60
+        while "open http" not in log_path.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, f"the viewer did not start: {log_path.read_text()}"
+            time.sleep(0.2)
+        with playwright_api.sync_playwright() as p:
+            browser = headless.launch(p)
+            page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
+            page.get_by_text("Subtasks").first.wait_for(timeout=20000)
+            yield page
+            browser.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(20)
+    assert code == 0, log_path.read_text()
 
 
 def shows(page, pattern: str, timeout_s: float = 30.0) -> None:
@@ -105,65 +115,54 @@ def pick(page, label: str, option: str) -> None:
                            "?.textContent.trim() === l)", arg=[label, option], timeout=10000)
 
 
+@pytest.mark.browser
 def test_subtasks_are_edited_and_saved_in_the_browser(episode, tmp_path):
-    import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     sidecar = episode.with_name(episode.name + ".subtasks.json")
     assert not sidecar.exists()
     log_path = tmp_path / "replay.log"
-    proc, port = start_viewer(episode, log_path)
-    try:
-        with playwright_api.sync_playwright() as p:
-            browser = headless.launch(p)
-            page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
+    with viewer_page(episode, log_path) as page:
+        # the boundaries found from the gripper and contacts, listed and drawn under the timeline
+        shows(page, r"^cube steps 0-\d+ \(0\.00-")
+        shows(page, r"not saved yet")
+        first = re.search(r"cube steps 0-(\d+)", page.locator("li").first.text_content()).group(1)
+        assert page.locator("div[title^='2: cube_base']").count() == 1  # the bar's second segment
+        shows(page, r"cube \(1/2\)$")
 
-            # the boundaries found from the gripper and contacts, listed and drawn under the timeline
-            page.get_by_text("Subtasks").first.wait_for(timeout=20000)
-            shows(page, r"^cube steps 0-\d+ \(0\.00-")
-            shows(page, r"not saved yet")
-            first = re.search(r"cube steps 0-(\d+)", page.locator("li").first.text_content()).group(1)
-            assert page.locator("div[title^='2: cube_base']").count() == 1  # the bar's second segment
-            shows(page, r"cube \(1/2\)$")
+        # move the boundary to the shown step, refuse one outside its neighbours, save
+        go_to(page, 100)
+        assert int(first) != 100
+        shows(page, r"cube_base \(2/2\)$")
+        headless.click_button(page, "Move boundary here")
+        shows(page, r"^cube steps 0-100 \(0\.00-3\.33 s\)")
+        go_to(page, 0)
+        headless.click_button(page, "Move boundary here")
+        shows(page, r"refused: boundary 1 must stay between steps 0 and 255")
+        headless.click_button(page, "Save")
+        shows(page, r"2 subtasks, saved to ")
+        expected = [{"object": "cube", "start": 0, "end": 100}, {"object": "cube_base", "start": 100, "end": 255}]
+        doc = json.loads(sidecar.read_text())
+        assert doc["by"] == "human" and doc["subtasks"] == expected
+        assert _inspect_subtasks(episode) == expected
 
-            # move the boundary to the shown step, refuse one outside its neighbours, save
-            go_to(page, 100)
-            assert int(first) != 100
-            shows(page, r"cube_base \(2/2\)$")
-            headless.click_button(page, "Move boundary here")
-            shows(page, r"^cube steps 0-100 \(0\.00-3\.33 s\)")
-            go_to(page, 0)
-            headless.click_button(page, "Move boundary here")
-            shows(page, r"refused: boundary 1 must stay between steps 0 and 255")
-            headless.click_button(page, "Save")
-            shows(page, r"2 subtasks, saved to ")
-            expected = [{"object": "cube", "start": 0, "end": 100}, {"object": "cube_base", "start": 100, "end": 255}]
-            doc = json.loads(sidecar.read_text())
-            assert doc["by"] == "human" and doc["subtasks"] == expected
-            assert _inspect_subtasks(episode) == expected
+        # type a step for the chosen boundary
+        step_box = page.get_by_label("At step", exact=True)
+        step_box.fill("90")
+        shows(page, r"^cube steps 0-90 ")
+        shows(page, r"not saved yet")
 
-            # type a step for the chosen boundary
-            step_box = page.get_by_label("At step", exact=True)
-            step_box.fill("90")
-            shows(page, r"^cube steps 0-90 ")
-            shows(page, r"not saved yet")
-
-            # remove it, then add one back with its object picked from the scene's
-            headless.click_button(page, "Remove boundary")
-            shows(page, r"^cube steps 0-255 ")
-            shows(page, r"cube \(1/1\)$")
-            go_to(page, 120)
-            pick(page, "Object", "cube")
-            headless.click_button(page, "Add boundary here")
-            shows(page, r"^cube steps 120-255 ")
-            pick(page, "Object", "cube_base")
-            headless.click_button(page, "Set object here")
-            shows(page, r"^cube_base steps 120-255 ")
-            headless.click_button(page, "Save")
-            shows(page, r"2 subtasks, saved to ")
-            browser.close()
-    finally:
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(20)
-    assert code == 0, log_path.read_text()
+        # remove it, then add one back with its object picked from the scene's
+        headless.click_button(page, "Remove boundary")
+        shows(page, r"^cube steps 0-255 ")
+        shows(page, r"cube \(1/1\)$")
+        go_to(page, 120)
+        pick(page, "Object", "cube")
+        headless.click_button(page, "Add boundary here")
+        shows(page, r"^cube steps 120-255 ")
+        pick(page, "Object", "cube_base")
+        headless.click_button(page, "Set object here")
+        shows(page, r"^cube_base steps 120-255 ")
+        headless.click_button(page, "Save")
+        shows(page, r"2 subtasks, saved to ")
     expected = [{"object": "cube", "start": 0, "end": 120}, {"object": "cube_base", "start": 120, "end": 255}]
     assert json.loads(sidecar.read_text())["subtasks"] == expected
     assert _inspect_subtasks(episode) == expected
@@ -203,8 +202,8 @@ def on_bar(page, *segments: str) -> None:
                            " return JSON.stringify(got) === JSON.stringify(want); }", arg=list(segments), timeout=15000)
 
 
+@pytest.mark.browser
 def test_each_arms_subtasks_are_edited_on_their_own_in_the_browser(two_arm_episode, tmp_path):
-    import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     episode = two_arm_episode
     sidecar = sidecar_path(episode)
     before = json.loads(sidecar.read_text())
@@ -216,55 +215,44 @@ def test_each_arms_subtasks_are_edited_on_their_own_in_the_browser(two_arm_episo
     added, moved = 200, 250  # the right arm gets a boundary at step 200, then moves it to 250
     assert steps > moved + 1 and grasped not in (added, moved)
     log_path = tmp_path / "replay.log"
-    proc, port = start_viewer(episode, log_path)
-    try:
-        with playwright_api.sync_playwright() as p:
-            browser = headless.launch(p)
-            page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
+    with viewer_page(episode, log_path) as page:
+        # the panel starts on the left arm: its two stored subtasks, listed and on the bar
+        shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
+        shows(page, rf"^world steps {grasped}-{steps} ")
+        shows(page, rf"^2 subtasks, from {re.escape(sidecar.name)}")
+        listed(page, 2)
+        on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
+        shows(page, r"cube \(1/2\)$")
 
-            # the panel starts on the left arm: its two stored subtasks, listed and on the bar
-            page.get_by_text("Subtasks").first.wait_for(timeout=20000)
-            shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
-            shows(page, rf"^world steps {grasped}-{steps} ")
-            shows(page, rf"^2 subtasks, from {re.escape(sidecar.name)}")
-            listed(page, 2)
-            on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
-            shows(page, r"cube \(1/2\)$")
+        # the right arm: its one subtask, nothing of the left arm's
+        pick(page, "Arm", "right")
+        shows(page, r"editing the right arm.s subtasks")  # markdown may curl the apostrophe
+        shows(page, rf"^cube steps 0-{steps} \(0\.00-")
+        listed(page, 1)
+        on_bar(page, f"1: cube, steps 0-{steps}")
+        shows(page, r"cube \(1/1\)$")
 
-            # the right arm: its one subtask, nothing of the left arm's
-            pick(page, "Arm", "right")
-            shows(page, r"editing the right arm.s subtasks")  # markdown may curl the apostrophe
-            shows(page, rf"^cube steps 0-{steps} \(0\.00-")
-            listed(page, 1)
-            on_bar(page, f"1: cube, steps 0-{steps}")
-            shows(page, r"cube \(1/1\)$")
+        # give it a boundary, move that to the shown step, save
+        go_to(page, added)
+        pick(page, "Object", "world")
+        headless.click_button(page, "Add boundary here")
+        shows(page, rf"^world steps {added}-{steps} ")
+        go_to(page, moved)
+        headless.click_button(page, "Move boundary here")
+        shows(page, rf"^cube steps 0-{moved} \({0:.2f}-{moved / 30:.2f} s\)")
+        shows(page, rf"^world steps {moved}-{steps} ")
+        shows(page, r"world \(2/2\)$")
+        on_bar(page, f"1: cube, steps 0-{moved}", f"2: world, steps {moved}-{steps}")
+        headless.click_button(page, "Save")
+        shows(page, r"^2 subtasks, saved to ")
 
-            # give it a boundary, move that to the shown step, save
-            go_to(page, added)
-            pick(page, "Object", "world")
-            headless.click_button(page, "Add boundary here")
-            shows(page, rf"^world steps {added}-{steps} ")
-            go_to(page, moved)
-            headless.click_button(page, "Move boundary here")
-            shows(page, rf"^cube steps 0-{moved} \({0:.2f}-{moved / 30:.2f} s\)")
-            shows(page, rf"^world steps {moved}-{steps} ")
-            shows(page, r"world \(2/2\)$")
-            on_bar(page, f"1: cube, steps 0-{moved}", f"2: world, steps {moved}-{steps}")
-            headless.click_button(page, "Save")
-            shows(page, r"^2 subtasks, saved to ")
-
-            # back on the left arm: its subtasks as they were
-            pick(page, "Arm", "left")
-            shows(page, r"editing the left arm.s subtasks")
-            shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
-            shows(page, rf"^world steps {grasped}-{steps} ")
-            listed(page, 2)
-            on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
-            browser.close()
-    finally:
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(20)
-    assert code == 0, log_path.read_text()
+        # back on the left arm: its subtasks as they were
+        pick(page, "Arm", "left")
+        shows(page, r"editing the left arm.s subtasks")
+        shows(page, rf"^cube steps 0-{grasped} \(0\.00-")
+        shows(page, rf"^world steps {grasped}-{steps} ")
+        listed(page, 2)
+        on_bar(page, f"1: cube, steps 0-{grasped}", f"2: world, steps {grasped}-{steps}")
     expected = [*left, {"object": "cube", "start": 0, "end": moved, "arm": "right"},
                 {"object": "world", "start": moved, "end": steps, "arm": "right"}]
     doc = json.loads(sidecar.read_text())

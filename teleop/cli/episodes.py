@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from teleop.errors import UsageError
+from teleop.cli.access_args import add_access_args
 from teleop.cli.json_output import print_json
 from teleop.cli.signals import cancel_on_interrupt
 
@@ -42,14 +43,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="compare every re-simulated state bit for bit; exit 0 only when exact")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--serve", action="store_true", help="open the episode in the browser viewer instead")
-    p.add_argument("--host", default="127.0.0.1", help="viewer host (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="viewer port (default 8080)")
-    p.add_argument("--token", default=None, metavar="TEXT",
-                   help="with --serve: the secret a browser must bring (the printed URL carries it as ?token=...); "
-                        "default: $TELEOP_TOKEN, else a random one when --host is not loopback (loopback needs none)")
-    p.add_argument("--no-token", action="store_true",
-                   help="with --serve: serve a non-loopback --host with no token "
-                        "(trusted networks only; prints a warning)")
+    add_access_args(p, host="viewer host", port="viewer port", when="with --serve: ")
     p.set_defaults(func=cmd_replay)
 
 

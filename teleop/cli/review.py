@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from teleop.cli.access_args import add_access_args
 from teleop.cli.json_output import print_json
 from teleop.cli.signals import cancel_on_interrupt
 from teleop.errors import UsageError
@@ -41,13 +42,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                        "flags and verdict; keys j/k move, a accepts, r rejects, n adds a note. Verdicts go to "
                        "<episode>.review.json beside each episode.")
     p.add_argument("folder", type=Path, metavar="DIR", help="a folder of episode files")
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
-    p.add_argument("--token", default=None, metavar="TEXT",
-                   help="the secret a browser must bring (the printed URL carries it as ?token=...); default: "
-                        "$TELEOP_TOKEN, else a random one when --host is not loopback (loopback needs none)")
-    p.add_argument("--no-token", action="store_true",
-                   help="serve a non-loopback --host with no token (trusted networks only; prints a warning)")
+    add_access_args(p)
     p.set_defaults(func=cmd_review)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from teleop.cli.access_args import add_access_args
 from teleop.cli.session_args import add_session_args, devices_from, session_from
 from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
@@ -27,14 +28,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default=",".join(DEFAULT_DEVICES),
                    help=f"comma list: gizmo, keyboard, spacemouse[:N...] (default {','.join(DEFAULT_DEVICES)}; "
                         "absent ones are listed on the page)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
-    p.add_argument("--token", default=None, metavar="TEXT",
-                   help="the secret a browser must bring (the printed URL carries it as ?token=...); default: "
-                        "$TELEOP_TOKEN, else a random one when --host is not loopback (loopback needs none)")
-    p.add_argument("--no-token", action="store_true",
-                   help="serve a non-loopback --host with no token (trusted networks only; prints a warning)")
+    add_access_args(p)
     p.add_argument("--policy", default=None, metavar="PATH",
                    help="a LeRobot pretrained_model folder (or script:FILE) that drives; touching any device takes "
                         "over, key p or the panel's button hands back; recorded steps say who drove")

@@ -38,6 +38,7 @@ import inspect
 import os
 import re
 import secrets
+import sys
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -49,7 +50,7 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
 from teleop.errors import UsageError
-from teleop.web.net import is_loopback
+from teleop.web.net import exposure_warning, is_loopback, page_url, remote_hint
 from teleop.web.viser_compat import INDEX_PATHS, Handler, ProcessRequest, with_head_script, wrapping_serve
 
 TOKEN_ENV = "TELEOP_TOKEN"
@@ -87,6 +88,18 @@ def resolve_token(host: str, token: str | None = None, no_token: bool = False,
 def url_with_token(url: str, token: str | None) -> str:
     """The page URL to print: `http://host:port/?token=...` (unchanged without a token)."""
     return url if token is None else f"{url.rstrip('/')}/?token={quote(token, safe='')}"
+
+
+def announce(host: str, port: int, token: str | None, what: str, reach: str, log: Callable[[str], None]) -> None:
+    """Say where a started page is: the warning (stderr) when a non-loopback host has no token (`reach`: what
+    anyone could do there), the URL to open with its token, for `what`, and how to open it from another machine."""
+    warning = exposure_warning(host, port, reach) if token is None else None
+    if warning:
+        print(warning, file=sys.stderr)
+    log(f"open {url_with_token(page_url(host, port), token)} in a browser to {what} (Ctrl-C to stop)")
+    hint = remote_hint(host)
+    if hint:
+        log(hint)
 
 
 @dataclass(frozen=True)

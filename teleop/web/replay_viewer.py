@@ -17,7 +17,6 @@ Camera and markers are the live session's (teleop.web.drawing).
 from __future__ import annotations
 
 import copy
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -26,9 +25,9 @@ import mujoco
 
 from replay.episode import Episode, EpisodeError
 from teleop.errors import UsageError
-from teleop.web.access import Gate, resolve_token, start_guarded, url_with_token
+from teleop.web.access import Gate, announce, resolve_token, start_guarded
 from teleop.web.drawing import Markers, place_camera
-from teleop.web.net import check_port_free, exposure_warning, page_url, remote_hint
+from teleop.web.net import check_port_free
 from teleop.web.replay_subtasks import SubtaskPanel
 from teleop.web.viser_compat import quick_array_casts
 
@@ -174,13 +173,7 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080, t
     except BaseException:
         server.stop()
         raise
-    warning = exposure_warning(host, port, VIEWER_REACH) if token is None else None
-    if warning:
-        print(warning, file=sys.stderr)
-    log(f"open {url_with_token(page_url(host, port), token)} in a browser to view {episode.path.name} (Ctrl-C to stop)")
-    hint = remote_hint(host)
-    if hint:
-        log(hint)
+    announce(host, port, token, f"view {episode.path.name}", VIEWER_REACH, log)
     if stop is not None:  # the cancellation token ends the play loop
         threading.Thread(target=lambda: (stop.wait(), viewer.stop()), name="viewer-stop", daemon=True).start()
     try:

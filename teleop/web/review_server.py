@@ -36,8 +36,8 @@ from replay.review import listing
 from replay.review.verdicts import VERDICTS, write_verdict
 from scenes.errors import TeleopError, first_line
 from teleop.errors import UsageError
-from teleop.web.access import Gate, resolve_token, same_origin, url_with_token
-from teleop.web.net import check_port_free, exposure_warning, page_url, remote_hint
+from teleop.web.access import Gate, announce, resolve_token, same_origin
+from teleop.web.net import check_port_free
 
 HERE = Path(__file__).resolve().parent
 PAGES = {"/": ("review.html", "text/html; charset=utf-8"), "/review.js": ("review.js", "text/javascript; charset=utf-8")}
@@ -208,13 +208,7 @@ def serve_review(folder: str | Path, host: str = "127.0.0.1", port: int = 8080, 
     except OSError as exc:
         raise UsageError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     server.daemon_threads = True
-    warning = exposure_warning(host, port, REVIEW_REACH) if token is None else None
-    if warning:
-        print(warning, file=sys.stderr)
-    log(f"open {url_with_token(page_url(host, port), token)} in a browser to review {total} episodes (Ctrl-C to stop)")
-    hint = remote_hint(host)
-    if hint:
-        log(hint)
+    announce(host, port, token, f"review {total} episodes", REVIEW_REACH, log)
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2}, name="review-http",
                               daemon=True)
     thread.start()
