@@ -2,7 +2,7 @@
 
 The control thread fills the writer's next preallocated row in place
 (`EpisodeWriter.claim` / `commit`), or hands it a `StepRecord` (`append`); a
-writer thread encodes and flushes every 0.05 s. The file layout is
+writer thread encodes and flushes every 0.1 s. The file layout is
 documented in `recorder.format`, which readers share.
 """
 

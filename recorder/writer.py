@@ -35,7 +35,7 @@ from scenes.errors import TeleopError, first_line
 
 FORMATS = ("mcap", "hdf5")
 SUFFIX = {"mcap": ".mcap", "hdf5": ".hdf5"}
-FLUSH_PERIOD = 0.05  # s; a kill -9 loses about this plus one batch's encoding (0.25 s promised)
+FLUSH_PERIOD = 0.1  # s; a kill -9 loses about this plus one batch's encoding (0.25 s promised); each flush costs ~1 ms of CPU
 BLOCK_ROWS = 256  # rows preallocated at a time (~10 s at 25 Hz); drained blocks are let go
 _EPISODE_RE = re.compile(r"^episode_(\d+)\.(mcap|hdf5)$")
 _open_writers: "weakref.WeakSet[EpisodeWriter]" = weakref.WeakSet()

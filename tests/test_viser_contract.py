@@ -331,3 +331,66 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
         assert axes.batched_positions.dtype == np.float32 and np.all(axes.batched_positions == 1.0)
     finally:
         server.stop()
+
+
+def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
+    """BodyPoses (our update of mjviser's handles) leaves every body handle as mjviser's update_from_mjdata does
+    (the same positions, the same rotations up to a quaternion's sign), takes the fast path on our pages' scene,
+    and inside scene_update a node's properties go out as one message; a second, unchanged update sends none."""
+    import mujoco
+    import numpy as np
+    from mjviser import ViserMujocoScene
+    from viser._messages import SceneNodeUpdateMessage
+
+    import teleop
+    from teleop.web.viser_compat import BodyPoses, scene_update
+
+    session = teleop.Session(scene="lift", robot="panda", seed=0)
+    model = session.controller.model
+    data = mujoco.MjData(model)
+    data.qpos[:] = session.controller.data.qpos
+    data.qpos[:7] += np.linspace(0.1, 0.7, 7)  # every link somewhere else than at the start
+    mujoco.mj_kinematics(model, data)
+    servers = [viser.ViserServer(host="127.0.0.1", port=0, verbose=False) for _ in range(2)]
+    try:
+        scenes = [ViserMujocoScene(server, model, num_envs=1) for server in servers]
+        for scene in scenes:
+            scene.camera_tracking_enabled = False
+        scenes[0].update_from_mjdata(data)  # mjviser's own
+        ours = BodyPoses(scenes[1])
+        assert ours.entries, broken("mjviser's ViserMujocoScene no longer has the handles BodyPoses reads",
+                                    "the cheap scene update (it falls back to mjviser's, about 3 times the CPU)")
+        queued: list = []
+        buffer = servers[1]._websock_server._broadcast_buffer
+        push = buffer.push
+        buffer.push = lambda message: (queued.append(message), push(message))[1]
+        with scene_update(servers[1]):
+            ours.update(data)
+        theirs = [g.handle for g in scenes[0]._mesh_groups]
+        mine = [g.handle for g in scenes[1]._mesh_groups]
+        assert len(theirs) == len(mine) > 5
+        moved = 0
+        for a, b in zip(theirs, mine):
+            assert np.allclose(a.batched_positions, b.batched_positions, atol=1e-6)
+            dots = np.abs(np.sum(a.batched_wxyzs.astype(float) * b.batched_wxyzs.astype(float), axis=1))
+            assert np.allclose(dots, 1.0, atol=1e-5), f"{a.name}: rotations differ"
+            moved += not np.allclose(b.batched_positions, 0.0)
+        assert moved > 5
+        updates = [m for m in queued if isinstance(m, SceneNodeUpdateMessage)]
+        names = [m.name for m in updates]
+        assert len(names) == len(set(names)) and len(updates) >= 5, "one message per node"
+        assert any(set(m.updates) == {"batched_positions", "batched_wxyzs"} for m in updates)
+        queued.clear()
+        with scene_update(servers[1]):
+            ours.update(data)
+        assert not [m for m in queued if isinstance(m, SceneNodeUpdateMessage)], "an unchanged pose is sent again"
+        # mjviser's own update (BodyPoses' fallback) through viser's setters: one message per node as well
+        data.qpos[:7] -= 0.2
+        mujoco.mj_kinematics(model, data)
+        with scene_update(servers[1]):
+            scenes[1].update_from_mjdata(data)
+        names = [m.name for m in queued if isinstance(m, SceneNodeUpdateMessage)]
+        assert len(names) >= 5 and len(names) == len(set(names)), "viser's setters: a message per property"
+    finally:
+        for server in servers:
+            server.stop()

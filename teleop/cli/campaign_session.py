@@ -27,6 +27,7 @@ from teleop.control.recording import Recorder
 from teleop.control.session_setup import open_session_devices
 
 DEVICES = ("gizmo", *BROWSER_DEVICES)  # what a remote operator's browser can drive; keys come by the page
+STATUS_PERIOD_S = 0.5  # s between status writes: the lobby's admin page and /api/status read them
 
 
 def read_spec() -> SessionSpec:
@@ -50,7 +51,10 @@ def watch_lifeline(stop: threading.Event) -> None:
 
 
 def run(spec: SessionSpec, stop: threading.Event) -> int:
+    from replay.render import rasterize_in_render_threads
     from teleop.web.serve import serve  # viser: imported once the spec is read
+
+    rasterize_in_render_threads()  # the page's camera picture renders in a thread of its own: no llvmpipe threads
 
     kinds = parse_vary(spec.vary, "generation")
     variation = Variation(kinds=kinds) if kinds else None
@@ -71,7 +75,8 @@ def run(spec: SessionSpec, stop: threading.Event) -> int:
     try:
         return serve(session, devices, host=spec.host, port=spec.port, status_file=Path(spec.status_file),
                      problems=problems, log=lambda line: print(line, flush=True), token=spec.token,
-                     page_keyboard=True, stop=stop, headline=progress.line, draw_unwatched=False)
+                     page_keyboard=True, stop=stop, headline=progress.line, draw_unwatched=False,
+                     status_period_s=STATUS_PERIOD_S)
     finally:
         timer.cancel()
         progress.stop()

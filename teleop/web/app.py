@@ -70,6 +70,7 @@ class WebApp:
         page_keyboard: bool = False,
         headline: Callable[[], str] | None = None,
         draw_unwatched: bool = True,
+        status_period_s: float = STATUS_PERIOD_S,
     ) -> None:
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
@@ -83,6 +84,7 @@ class WebApp:
         self.last_saved: Path | None = None
         self._messages: list[str] = []
         self._status_due = 0.0
+        self.status_period_s = status_period_s  # s between status-file writes
         self._closed = False
         self.url = page_url(host, port)
         self.gate = Gate(token, port)  # token None: open (loopback, or --no-token)
@@ -330,11 +332,11 @@ class WebApp:
         }
 
     def tick_status(self) -> None:
-        """Write the status file if one was asked for, at most every STATUS_PERIOD_S."""
+        """Write the status file if one was asked for, at most every `status_period_s`."""
         now = time.monotonic()
         if self.status_file is None or now < self._status_due:
             return
-        self._status_due = now + STATUS_PERIOD_S
+        self._status_due = now + self.status_period_s
         self.write_status()
 
     def write_status(self) -> None:

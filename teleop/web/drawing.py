@@ -6,8 +6,10 @@ did live.
 
 Drawing never reads the physics MjData: it copies the latest Snapshot's qpos
 into its own MjData on its own model copy and runs mj_kinematics there. Poses
-go out through mjviser's batched handles (one message per group of bodies),
-at most `max_hz` times a second and only when the state changed.
+go out through mjviser's batched handles (one message per group of bodies, set
+by viser_compat.BodyPoses), the markers and gizmos with them in one block that
+wakes viser's sender once, at most `max_hz` times a second and only when the
+state changed.
 
 Gizmos are two-way. A drag pushes poses into the gizmo device; when the target
 moves for any other reason (keyboard, SpaceMouse, a target clamped to the
@@ -29,7 +31,7 @@ from mjviser import ViserMujocoScene
 
 from teleop.web.loop_thread import LoopThread
 from teleop.web.sim_thread import SimThread, Snapshot
-from teleop.web.viser_compat import quick_array_casts
+from teleop.web.viser_compat import BodyPoses, quick_array_casts, scene_update, set_arrays
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)
@@ -39,6 +41,8 @@ CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 CAMERA_FOV = np.radians(50.0)  # vertical
 POSE_EPS = 1e-5
 MOVE_EPS = 2e-5  # m (and rotation-matrix entries): below this nothing visibly moved
+TICK_WAIT_S = 0.05  # s: the longest wait for a tick before the stop flag is looked at again
+UNWATCHED_WAIT_S = 0.1  # s: how soon a page that opens gets its first update, when drawing only for pages
 
 
 def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
@@ -77,10 +81,9 @@ class Markers:
 
     def draw(self, targets: np.ndarray, ee: np.ndarray) -> None:
         """targets: (n_arms, 7) position + wxyz; ee: (n_arms, >=3), the position first."""
-        self.target_axes.batched_positions = targets[:, :3]
-        self.target_axes.batched_wxyzs = targets[:, 3:7]
-        self.ee_balls.batched_positions = ee[:, :3]
-        self.error_lines.points = np.stack([ee[:, :3], targets[:, :3]], axis=1)
+        set_arrays(self.target_axes, batched_positions=targets[:, :3], batched_wxyzs=targets[:, 3:7])
+        set_arrays(self.ee_balls, batched_positions=ee[:, :3])
+        set_arrays(self.error_lines, points=np.stack([ee[:, :3], targets[:, :3]], axis=1))
 
 
 class SceneDrawer(LoopThread):
@@ -109,6 +112,7 @@ class SceneDrawer(LoopThread):
         quick_array_casts()  # a scene update sets ~27 handle properties: viser's cast was a third of its cost
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False  # keep world coordinates: gizmos and markers live there
+        self.bodies = BodyPoses(self.scene)  # mjviser's update, a third of its cost
         self.markers = Markers(server, len(snap.targets))
         self.gizmos: list[viser.TransformControlsHandle] = []
         if gizmo is not None:
@@ -131,23 +135,25 @@ class SceneDrawer(LoopThread):
 
     # -- thread ----------------------------------------------------------
     def _run(self) -> None:
-        next_frame = time.perf_counter()
+        due = time.perf_counter()  # the earliest the next update may go (max_hz)
         while not self._stop.is_set():
+            self.sim.ticked.clear()  # before the snapshot is read: a tick from now on ends the wait below
             snap = self.sim.snapshot
-            watched = not self.only_watched or bool(self.server.get_clients())
-            if watched and (snap.tick != self._last_tick or snap.generation != self._generation):
+            if self.only_watched and not self.server.get_clients():
+                self._stop.wait(UNWATCHED_WAIT_S)  # no page to draw for: not woken by every tick
+                continue
+            if snap.tick != self._last_tick or snap.generation != self._generation:
+                now = time.perf_counter()
+                if now < due:  # ticks come faster than max_hz: the update waits out its period
+                    self._stop.wait(due - now)
+                    continue
+                due = due + self.period if now - due < self.period else now + self.period
                 try:
                     self.draw(snap)
                 except Exception as exc:  # noqa: BLE001 - a drawing hiccup must not end the session
                     print(f"drawing failed: {type(exc).__name__}: {exc}")
-                next_frame += self.period
-                self._stop.wait(max(0.0, next_frame - time.perf_counter()))
-                if time.perf_counter() - next_frame > self.period:
-                    next_frame = time.perf_counter()
-            else:  # no new tick: sleep until the loop ticks (no polling: a session's idle wake-ups cost CPU)
-                self.sim.ticked.wait(0.05)
-                self.sim.ticked.clear()
-                next_frame = max(next_frame, time.perf_counter() - self.period)
+            # Until the loop ticks again: one wake-up an update, no polling (a session's wake-ups cost CPU).
+            self.sim.ticked.wait(TICK_WAIT_S)
 
     # -- one update ------------------------------------------------------
     def draw(self, snap: Snapshot) -> float:
@@ -158,18 +164,18 @@ class SceneDrawer(LoopThread):
             start = time.perf_counter()
             snap.pose(self.data)
             self._last_tick = snap.tick
-            self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target
-            if not self._moved(snap):
+            moved = self._moved(snap)
+            # One block for the gizmos, the markers and the bodies: one message per scene node, and one
+            # wake-up of viser's sender when it ends (viser_compat.scene_update), not one per property
+            # set, per atomic block and per flush (mjviser flushes inside its own block besides).
+            with scene_update(self.server):
+                self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target
+                if moved:
+                    self._draw_markers(snap)
+                    self.bodies.update(self.data)
+            if not moved:
                 self.skipped += 1
                 return 0.0
-            # One atomic block for the markers and the bodies: viser's sender is woken 3 times an
-            # update, not once per marker property besides (7). mjviser flushes inside its own block,
-            # where the sender cannot take the messages yet, so a flush again once the block is closed
-            # (without it the sender waits a window out: ~23 instead of 60 windows/s).
-            with self.server.atomic():
-                self._draw_markers(snap)
-                self.scene.update_from_mjdata(self.data)
-            self.server.flush()
             cost = time.perf_counter() - start
             self.update_s.append(cost)
             self.updates += 1
@@ -208,6 +214,7 @@ class SceneDrawer(LoopThread):
         self.scene.mj_model = self.model
         self.scene.mj_data = mujoco.MjData(self.model)
         self.scene.rebuild_visual_handles()
+        self.bodies = BodyPoses(self.scene)
         self._generation = snap.generation
         self._sent = None
 

@@ -1,4 +1,4 @@
-"""Everything teleop relies on in viser and websockets beyond their public APIs, in one place.
+"""Everything teleop relies on in viser, mjviser and websockets beyond their public APIs, in one place.
 
 viser (pinned to 1.1.x in pyproject.toml) has no public call for some things the
 served page needs, so teleop uses a few of its internals. Only this module touches
@@ -31,6 +31,35 @@ breaks one:
   update's cost). For a float-array hint it now looks the dtype up in a table built
   once, and casts as viser does (`np.asarray(value).astype(dtype)`); any other hint
   goes to viser's own function unchanged.
+- `one_message_per_node` (for what still goes through viser's setters, such as
+  mjviser's own update where `BodyPoses` falls back to it): a scene handle queues each
+  property it is given as its own
+  `SceneNodeUpdateMessage(name, {prop: value})` (`SceneNodeHandle._queue_update`),
+  though the message carries a dict of updates and the client applies them all. A
+  scene update gives most bodies a position and an orientation: within the block
+  (its thread only) each node's properties go out as one message, which halves the
+  messages viser's buffer indexes and its sender serializes (21 to 13 an update on
+  lift). viser's redundancy key for such a message is the node and its sorted property
+  names, so a newer update still replaces an unsent one.
+- `scene_update`: one scene update, one wake-up of viser's sender. A block of
+  `ViserServer.atomic()` wakes the sender's event loop (`call_soon_threadsafe`) when it
+  ends, a `flush()` once more, and mjviser flushes inside its own block besides, where
+  the sender can take nothing yet; a property set before the block is a message and a
+  wake of its own. `scene_update` is an atomic block on the broadcast buffer
+  (`_websock_server._broadcast_buffer`: `atomic_start`, `atomic_counter` under
+  `buffer_lock`, `message_event`, `flush_event`, `event_loop`) with
+  `one_message_per_node` inside; `ViserServer.flush` does nothing in its thread while
+  it is open, and at its end one callback sets both events, only if a message was queued.
+- `set_arrays`: what viser's setter does for a float-array property (cast to the
+  stored array's dtype, nothing sent when equal, the stored array updated in place, a
+  private copy queued: `AssignablePropsBase`'s `props_setattr`), for several of one
+  node's properties at once and without its per-call type checks: one message.
+- `BodyPoses`: mjviser's `update_from_mjdata` for our pages (one environment, no camera
+  tracking, no overlay, no convex hulls), from mjviser's handles (`_mesh_groups`: each
+  `handle`, `body_ids`, `mocap_ids`; `site_handles_by_group`) and MuJoCo's own body
+  quaternions (`xquat`, which mjviser recomputes from `xmat` each update). It costs
+  about a third of mjviser's update; where mjviser is not as described (another
+  release, an overlay switched on), it calls mjviser's update.
 """
 
 from __future__ import annotations
@@ -45,7 +74,8 @@ import numpy.typing as npt
 import viser
 import websockets.asyncio.server
 from viser._assignable_props_api import AssignablePropsBase
-from viser._messages import RunJavascriptMessage
+from viser._messages import RunJavascriptMessage, SceneNodeUpdateMessage
+from viser._scene_handles import SceneNodeHandle
 from websockets.asyncio.server import ServerConnection
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
@@ -155,3 +185,149 @@ def quick_array_casts() -> None:
         cast.quick = True  # type: ignore[attr-defined]
         cast.original = original  # type: ignore[attr-defined]
         AssignablePropsBase._cast_value_recursive = cast  # noqa: SLF001
+
+
+_PENDING = threading.local()  # .updates: {(id(scene api), node name): (scene api, name, {prop: value})} while open
+
+
+@contextmanager
+def one_message_per_node() -> Iterator[None]:
+    """Within the block, this thread's property sets on scene nodes go out as one message per node at its end
+    (in the order the nodes were first given one; a later value of a property replaces an earlier one)."""
+    _coalesce_scene_updates()
+    if getattr(_PENDING, "updates", None) is not None:  # nested: the outer block sends
+        yield
+        return
+    _PENDING.updates = pending = {}
+    try:
+        yield
+    finally:
+        _PENDING.updates = None
+        for api, name, updates in pending.values():
+            api._queue_scene_message(SceneNodeUpdateMessage(name, updates))  # noqa: SLF001 - stamps the owner
+
+
+def _coalesce_scene_updates() -> None:
+    """Make SceneNodeHandle._queue_update collect into an open `one_message_per_node` block (once per process)."""
+    with _CAST_LOCK:
+        original = SceneNodeHandle._queue_update  # noqa: SLF001
+        if getattr(original, "coalescing", False):
+            return
+
+        def queue_update(self, name, value):
+            pending = getattr(_PENDING, "updates", None)
+            if pending is None:
+                return original(self, name, value)
+            impl = self._impl  # noqa: SLF001
+            key = (id(impl.api), impl.name)
+            entry = pending.get(key)
+            if entry is None:
+                pending[key] = (impl.api, impl.name, {name: value})
+            else:
+                entry[2][name] = value
+
+        queue_update.coalescing = True  # type: ignore[attr-defined]
+        queue_update.original = original  # type: ignore[attr-defined]
+        SceneNodeHandle._queue_update = queue_update  # noqa: SLF001
+
+
+_IN_UPDATE = threading.local()  # .open: True while this thread is in a scene_update block
+
+
+@contextmanager
+def scene_update(server: viser.ViserServer) -> Iterator[None]:
+    """Everything queued in the block reaches the browsers together, one message per scene node, as soon as the
+    block ends, waking viser's sender once (see the module's docstring)."""
+    _quiet_flush_in_updates()
+    buffer = server._websock_server._broadcast_buffer  # noqa: SLF001
+    buffer.atomic_start()
+    first = buffer.message_counter
+    _IN_UPDATE.open = True
+    try:
+        with one_message_per_node():
+            yield
+    finally:
+        _IN_UPDATE.open = False
+        with buffer.buffer_lock:
+            buffer.atomic_counter -= 1
+            release = buffer.atomic_counter == 0 and buffer.message_counter != first
+        if release:
+            try:
+                buffer.event_loop.call_soon_threadsafe(_send_now, buffer)
+            except RuntimeError:  # the server's loop has closed: nobody to send to
+                pass
+
+
+def _send_now(buffer) -> None:
+    buffer.message_event.set()  # a sender waiting for messages takes them
+    buffer.flush_event.set()  # and one waiting out a window stops waiting
+
+
+def _quiet_flush_in_updates() -> None:
+    """Make ViserServer.flush do nothing inside a scene_update block of its thread (once per process)."""
+    with _CAST_LOCK:
+        original = viser.ViserServer.flush
+        if getattr(original, "quiet_in_updates", False):
+            return
+
+        def flush(self) -> None:
+            if not getattr(_IN_UPDATE, "open", False):
+                original(self)
+
+        flush.quiet_in_updates = True  # type: ignore[attr-defined]
+        flush.original = original  # type: ignore[attr-defined]
+        viser.ViserServer.flush = flush
+
+
+def set_arrays(handle, **arrays: np.ndarray) -> None:
+    """Give a scene node float-array properties as viser's setter does, in one message (see above)."""
+    impl = handle._impl  # noqa: SLF001
+    if impl.removed:
+        return
+    props = impl.props
+    updates = {}
+    for name, value in arrays.items():
+        current = getattr(props, name)
+        value = np.array(value, dtype=current.dtype)  # a copy: the stored array and the queued one never alias it
+        if value.shape == current.shape:
+            if np.array_equal(current, value):
+                continue
+            current[...] = value
+        else:
+            setattr(props, name, value.copy())
+        updates[name] = value
+    if updates:
+        impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001 - stamps the owner
+
+
+class BodyPoses:
+    """Puts an MjData's body poses (world frame) into a ViserMujocoScene's handles, as its update_from_mjdata does."""
+
+    def __init__(self, scene) -> None:
+        self.scene = scene
+        self.entries = self._entries(scene)  # None: mjviser's own update
+
+    @staticmethod
+    def _entries(scene) -> list | None:
+        try:
+            if (scene._any_decor_visible() or scene._show_convex_hull  # noqa: SLF001
+                    or scene.camera_tracking_enabled or scene.num_envs != 1):
+                return None
+            entries = [(g.handle, np.asarray(g.body_ids), None if g.mocap_ids is None else np.asarray(g.mocap_ids))
+                       for g in scene._mesh_groups]  # noqa: SLF001
+            entries += [(h, np.array([body]), None) for (body, _), h in scene.site_handles_by_group.items()]
+        except AttributeError:
+            return None
+        return entries
+
+    def update(self, data) -> None:
+        if self.entries is None:
+            self.scene.update_from_mjdata(data)
+            return
+        for handle, bodies, mocaps in self.entries:
+            if not handle.visible:
+                continue
+            if mocaps is None:
+                set_arrays(handle, batched_positions=data.xpos[bodies], batched_wxyzs=data.xquat[bodies])
+            else:
+                set_arrays(handle, batched_positions=data.mocap_pos[mocaps], batched_wxyzs=data.mocap_quat[mocaps])
