@@ -7,7 +7,6 @@ real-time loop, and a write error stops recording while driving goes on.
 
 from __future__ import annotations
 
-import gc
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -108,9 +107,6 @@ def serve(
     if warning:
         print(warning, file=sys.stderr)
     app.start()
-    # What exists now lives as long as the session (modules, models, viser's scene): the garbage collector's
-    # full passes need not walk it again (~150,000 objects; they were ~4 ms of CPU a second).
-    gc.freeze()
     where = f", recording into {recorder.directory}" if recorder is not None else " (not recording: add --record DIR)"
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
     if takeover is not None:
