@@ -109,7 +109,7 @@ class SceneDrawer(LoopThread):
         self.model = copy.copy(snap.model)
         self.data = mujoco.MjData(self.model)
         place_camera(server)
-        quick_array_casts()  # a scene update sets ~27 handle properties: viser's cast was a third of its cost
+        quick_array_casts()  # for what still goes through viser's setters (BodyPoses' fallback: mjviser's own update)
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False  # keep world coordinates: gizmos and markers live there
         self.bodies = BodyPoses(self.scene)  # mjviser's update, a third of its cost
