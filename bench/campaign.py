@@ -117,6 +117,7 @@ def drive(joined: list[dict], watched: bool, seconds: float, out: Path) -> list[
             "realtime_factor": (last["tick"] - first["tick"]) / (wall * last["control_hz"]) if wall > 0 else 0.0,
             "latency_p95_ms": latencies[min(len(latencies) - 1, int(0.95 * len(latencies)))],
             "updates_per_s": (last["web_updates"] - first["web_updates"]) / wall if wall > 0 else 0.0,
+            "pictures_per_s": (last.get("camera_frames", 0) - first.get("camera_frames", 0)) / wall if wall > 0 else 0.0,
             "pid": last["pid"],
         })
     return figures
@@ -169,9 +170,11 @@ def trial(n: int, watched: bool, seconds: float) -> dict:
     worst_rtf = min(f["realtime_factor"] for f in figures)
     worst_latency = max(f["latency_p95_ms"] for f in figures)
     worst_updates = min(f["updates_per_s"] for f in figures)
+    pictures = min(f.get("pictures_per_s", 0.0) for f in figures)  # the camera picture yields to the loops
     print(f"campaign bench: {n} sessions {'watched' if watched else 'unwatched'}: {'held' if held else 'fell behind'} "
           f"(the worst session of each: real-time factor {worst_rtf:.3f}, latency p95 {worst_latency:.0f} ms"
-          + (f", {worst_updates:.1f} updates/s" if watched else "") + ")", file=sys.stderr)
+          + (f", {worst_updates:.1f} updates/s, {pictures:.1f} camera pictures/s" if watched else "") + ")",
+          file=sys.stderr)
     return {"held": held, "join_ms": [ms for ms, _ in joins], "cpu": cpu}
 
 

@@ -1,9 +1,10 @@
 """Browser session speed: what a scene update costs, what a browser receives, whether the loop keeps real time.
 
 Figures (`measure`):
-  web_update_ms          server-side cost of one scene update (copy qpos, mj_kinematics on the
-                         drawing MjData, markers, mjviser's batched poses, flush), median, with the
-                         arm moving so that every update is sent (lift, Panda)
+  web_update_ms          server-side cost of one scene update in the drawing thread (the snapshot's
+                         body poses into mjviser's handles, markers, gizmo, the frame for the pages
+                         built and handed to viser's loop), median, with the arm moving so that every
+                         update is sent and one page (a raw websocket client) connected (lift, Panda)
   web_updates_per_s      scene updates per second a headless Chromium received (counted inside
                          viser's worker: decoded batches that move bodies) from `teleop serve
                          --control-hz 60` while the arm moves: the drawer's 60 Hz cap is the limit;
@@ -36,6 +37,7 @@ import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -56,10 +58,13 @@ def update_cost_ms(updates: int) -> float:
     """Median server-side cost of one scene update, in process, arm moving every tick."""
     import viser
 
+    from websockets.sync.client import connect
+
     from devices.command import Command
     from teleop.control.session import Session
     from teleop.web.drawing import SceneDrawer
     from teleop.web.sim_thread import SimThread
+    from teleop.web.viser_compat import WEBSOCKET_PROTOCOL
 
     class Sweep:
         name = kind = "sweep"
@@ -75,6 +80,16 @@ def update_cost_ms(updates: int) -> float:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    page = connect(f"ws://127.0.0.1:{port}", subprotocols=[WEBSOCKET_PROTOCOL], max_size=None)
+
+    def take_all() -> None:  # a page that takes every frame: the updates are built and sent, as to a browser
+        try:
+            while True:
+                page.recv()
+        except Exception:  # noqa: BLE001 - closed at the end
+            pass
+
+    threading.Thread(target=take_all, daemon=True).start()
     try:
         sim = SimThread(Session(), [Sweep()], log=lambda m: None)
         drawer = SceneDrawer(server, sim)
@@ -85,6 +100,7 @@ def update_cost_ms(updates: int) -> float:
                 costs.append(cost)
         return float(np.median(costs[20:])) * 1000.0
     finally:
+        page.close()
         server.stop()
 
 

@@ -18,6 +18,7 @@ import html
 import importlib
 import inspect
 import re
+import time
 import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -336,14 +337,15 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
 def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
     """BodyPoses (our update of mjviser's handles) leaves every body handle as mjviser's update_from_mjdata does
     (the same positions, the same rotations up to a quaternion's sign), takes the fast path on our pages' scene,
-    and inside scene_update a node's properties go out as one message; a second, unchanged update sends none."""
+    and inside SceneStream.update a node's properties go out as one message; a second, unchanged update sends
+    none; mjviser's own update (the fallback) goes out through the block as one message per node as well."""
     import mujoco
     import numpy as np
     from mjviser import ViserMujocoScene
     from viser._messages import SceneNodeUpdateMessage
 
     import teleop
-    from teleop.web.viser_compat import BodyPoses, scene_update
+    from teleop.web.viser_compat import BodyPoses, SceneStream
 
     session = teleop.Session(scene="lift", robot="panda", seed=0)
     model = session.controller.model
@@ -361,10 +363,12 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
         assert ours.entries, broken("mjviser's ViserMujocoScene no longer has the handles BodyPoses reads",
                                     "the cheap scene update (it falls back to mjviser's, about 3 times the CPU)")
         queued: list = []
+        stream = SceneStream(servers[1])
+        stream._send = queued.extend  # what the block hands on to be written to the pages
         buffer = servers[1]._websock_server._broadcast_buffer
         push = buffer.push
-        buffer.push = lambda message: (queued.append(message), push(message))[1]
-        with scene_update(servers[1]):
+        buffer.push = lambda message: (queued.append(message), push(message))[1]  # and what goes to viser's buffer
+        with stream.update():
             ours.update(data)
         theirs = [g.handle for g in scenes[0]._mesh_groups]
         mine = [g.handle for g in scenes[1]._mesh_groups]
@@ -381,16 +385,130 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
         assert len(names) == len(set(names)) and len(updates) >= 5, "one message per node"
         assert any(set(m.updates) == {"batched_positions", "batched_wxyzs"} for m in updates)
         queued.clear()
-        with scene_update(servers[1]):
+        with stream.update():
             ours.update(data)
         assert not [m for m in queued if isinstance(m, SceneNodeUpdateMessage)], "an unchanged pose is sent again"
         # mjviser's own update (BodyPoses' fallback) through viser's setters: one message per node as well
         data.qpos[:7] -= 0.2
         mujoco.mj_kinematics(model, data)
-        with scene_update(servers[1]):
+        with stream.update():
             scenes[1].update_from_mjdata(data)
         names = [m.name for m in queued if isinstance(m, SceneNodeUpdateMessage)]
         assert len(names) >= 5 and len(names) == len(set(names)), "viser's setters: a message per property"
     finally:
         for server in servers:
             server.stop()
+
+
+# -- scene frames written straight to the pages (SceneStream) ---------------------------
+def decode_frame(raw: bytes) -> tuple[list[dict], list[bytes]]:
+    """One websocket frame of viser's wire format: its messages (msgpack dicts) and its binary buffers."""
+    import msgspec.msgpack
+    import zstandard
+
+    inner_size, packed_size = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+    document = msgspec.msgpack.decode(
+        zstandard.ZstdDecompressor().decompress(raw[16:16 + packed_size], max_output_size=inner_size))
+    offset, buffers = 16 + packed_size, []
+    for length in document["binaryBufferLengths"]:
+        offset += (8 - offset % 8) % 8
+        buffers.append(raw[offset:offset + length])
+        offset += length
+    assert offset == len(raw)
+    return document["messages"], buffers
+
+
+def frames_until(ws, wanted, timeout_s: float = 15.0) -> list[tuple[list[dict], list[bytes]]]:
+    """Frames a raw client of viser's websocket receives until one holds a message `wanted(message)` is true of."""
+    frames, deadline = [], time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            raw = ws.recv(timeout=max(0.05, deadline - time.monotonic()))
+        except TimeoutError:
+            break
+        frames.append(decode_frame(raw))
+        if any(wanted(m) for m in frames[-1][0]):
+            return frames
+    pytest.fail(f"no frame with the wanted message in {timeout_s:.0f} s ({len(frames)} frames)")
+
+
+def frames_for(ws, seconds: float) -> list[tuple[list[dict], list[bytes]]]:
+    """Every frame a raw client of viser's websocket receives in `seconds`."""
+    frames, deadline = [], time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            frames.append(decode_frame(ws.recv(timeout=left)))
+        except TimeoutError:
+            break
+    return frames
+
+
+def test_scene_stream_frames_are_viser_s_wire_format_after_the_nodes_and_whole_for_a_new_page(served):
+    """SceneStream writes its updates itself: each page gets them as frames of viser's own format (header, zstd'd
+    msgpack, aligned arrays), after the frames that made the nodes, once each and not again from viser's buffer;
+    a page that opens later gets the whole newest state; a quick serialization equals viser's."""
+    import numpy as np
+    from viser._messages import SceneNodeUpdateMessage
+
+    from teleop.web.viser_compat import SceneStream, serializable, set_arrays
+
+    server = served.server
+    axes = server.scene.add_batched_axes("/contract/stream_axes", batched_wxyzs=np.tile([1.0, 0, 0, 0], (2, 1)),
+                                         batched_positions=np.zeros((2, 3)))
+    gizmo = server.scene.add_transform_controls("/contract/stream_gizmo", position=(0.0, 0.0, 0.0))
+    stream = SceneStream(server)
+    url = served.url.replace("http://", "ws://")
+    updated = lambda m: m.get("type") == "SceneNodeUpdateMessage" and m.get("name") == "/contract/stream_axes"  # noqa: E731
+    with connect(url, subprotocols=[VISER_PROTOCOL], max_size=None) as first:
+        made = frames_until(first, lambda m: m.get("name") == "/contract/stream_gizmo")  # viser's sender: the nodes
+        assert not any(updated(m) for frame in made for m in frame[0])
+        wait_until(lambda: stream.watched(), 10.0, "the page's connection")
+        positions = np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]], dtype=np.float32)
+        for attempt in range(50):  # the page gets frames once viser's sender has written it the nodes
+            with stream.update():
+                set_arrays(axes, batched_positions=positions + attempt)
+                gizmo.position = (0.5, 0.0, float(attempt))
+            if stream.frames:
+                break
+            time.sleep(0.1)
+        assert stream.frames, broken("SceneStream never found the page caught up with viser's sender",
+                                     "the campaign's scene updates (none reach a page)")
+        messages, buffers = [frame for frame in frames_for(first, 1.0) if any(updated(m) for m in frame[0])][-1]
+        update = next(m for m in messages if updated(m))
+        placeholder = update["updates"]["batched_positions"]
+        assert placeholder["dtype"] == "<f4"
+        sent = np.frombuffer(buffers[placeholder["__binary_index"]], dtype=np.float32).reshape(2, 3)
+        assert np.allclose(sent, positions + attempt)
+        pose = next(m for m in messages if m.get("name") == "/contract/stream_gizmo")
+        assert pose["type"] == "SetPositionMessage" and list(pose["position"]) == [0.5, 0.0, float(attempt)]
+        assert np.allclose(axes.batched_positions, positions + attempt)  # the handle holds what was sent
+        # Nothing of it also went through viser's buffer: no second copy follows.
+        with stream.update():
+            set_arrays(axes, batched_positions=positions)
+        server.flush()  # were it in viser's buffer too, its sender would send it now
+        again = frames_for(first, 1.0)
+        assert sum(updated(m) for frame in again for m in frame[0]) == 1, "an update went out twice"
+        # A page that opens now gets the newest state whole at the next update, though nothing changed since.
+        with connect(url, subprotocols=[VISER_PROTOCOL], max_size=None) as second:
+            frames_until(second, lambda m: m.get("name") == "/contract/stream_gizmo")  # viser's sender: the nodes
+            for _ in range(50):
+                with stream.update():
+                    pass
+                whole = [frame for frame in frames_for(second, 0.2) if any(updated(m) for m in frame[0])]
+                if whole:
+                    break
+            assert whole, "a page that opened later never got the newest state"
+            messages, buffers = whole[0]
+            update = next(m for m in messages if updated(m))
+            sent = np.frombuffer(buffers[update["updates"]["batched_positions"]["__binary_index"]], dtype=np.float32)
+            assert np.allclose(sent.reshape(2, 3), positions)
+            pose = next(m for m in messages if m.get("name") == "/contract/stream_gizmo")
+            assert list(pose["position"]) == [0.5, 0.0, float(attempt)]
+            assert not [f for f in frames_for(first, 0.3) if any(updated(m) for m in f[0])], "the first page got it again"
+    message = SceneNodeUpdateMessage("/n", {"batched_positions": positions, "batched_wxyzs": np.ones((2, 4))},
+                                     owner="o")
+    ours, theirs = [], []
+    assert serializable(message, ours) == message.as_serializable_dict(theirs)
+    assert [bytes(b) for b in ours] == [bytes(b) for b in theirs]
+    axes.remove()
+    gizmo.remove()

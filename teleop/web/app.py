@@ -1,6 +1,7 @@
 """One served teleop session: the viser server and the threads around one Session.
 
-    control loop (SimThread)  --snapshots-->  drawing (SceneDrawer, <= 60 Hz)
+    control loop (SimThread)  --snapshots-->  drawing (SceneDrawer, <= 60 Hz, cued by each tick,
+          |                                            in viser's event loop)
           ^  polls devices                    camera picture (CameraFeed, a few Hz)
           |                                   panel text (Panel, 4 Hz) + status file
     gizmo / panel / keyboard / SpaceMouse / keys in the page (input channel)

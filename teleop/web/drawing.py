@@ -4,12 +4,18 @@ The camera and the markers (`place_camera`, `Markers`) are shared with the
 replay viewer (teleop.web.replay_viewer), so a recorded episode looks as it
 did live.
 
-Drawing never reads the physics MjData: it copies the latest Snapshot's qpos
-into its own MjData on its own model copy and runs mj_kinematics there. Poses
-go out through mjviser's batched handles (one message per group of bodies, set
-by viser_compat.BodyPoses), the markers and gizmos with them in one block that
-wakes viser's sender once, at most `max_hz` times a second and only when the
-state changed.
+Drawing never reads the physics MjData: it draws the body poses of the latest
+Snapshot (copied at the end of a tick). It runs
+in viser's event loop, cued by each tick of the control loop (at most `max_hz`
+times a second, and only when the state changed): the poses go into mjviser's
+batched handles (viser_compat.BodyPoses), and they, the markers and the gizmos
+go out as one frame written to each page from there (viser_compat.SceneStream).
+Waking a thread costs ~0.1-0.25 ms of CPU on the project's virtual machine, a
+good part of a session's cost when many run on one: a tick wakes the control
+loop and viser's loop, and no drawing thread besides. (Drawing in the control
+loop's own thread woke one thread less, but a tick twice as long waits longer
+for a core when the machine is crowded: at 20 sessions the loops fell to half
+real time.)
 
 Gizmos are two-way. A drag pushes poses into the gizmo device; when the target
 moves for any other reason (keyboard, SpaceMouse, a target clamped to the
@@ -29,9 +35,8 @@ import trimesh
 import viser
 from mjviser import ViserMujocoScene
 
-from teleop.web.loop_thread import LoopThread
 from teleop.web.sim_thread import SimThread, Snapshot
-from teleop.web.viser_compat import BodyPoses, quick_array_casts, scene_update, set_arrays
+from teleop.web.viser_compat import BodyPoses, SceneStream, quick_array_casts, set_arrays
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)
@@ -40,9 +45,7 @@ CAMERA_POSITION = (1.45, -1.05, 0.95)
 CAMERA_LOOK_AT = (0.35, 0.0, 0.2)
 CAMERA_FOV = np.radians(50.0)  # vertical
 POSE_EPS = 1e-5
-MOVE_EPS = 2e-5  # m (and rotation-matrix entries): below this nothing visibly moved
-TICK_WAIT_S = 0.05  # s: the longest wait for a tick before the stop flag is looked at again
-UNWATCHED_WAIT_S = 0.1  # s: how soon a page that opens gets its first update, when drawing only for pages
+MOVE_EPS = 2e-5  # m (and quaternion entries): below this nothing visibly moved
 
 
 def _quat_close(a: np.ndarray, b: np.ndarray) -> bool:
@@ -86,8 +89,8 @@ class Markers:
         set_arrays(self.error_lines, points=np.stack([ee[:, :3], targets[:, :3]], axis=1))
 
 
-class SceneDrawer(LoopThread):
-    """Pushes the simulation's poses to every browser, up to `max_hz` updates a second."""
+class SceneDrawer:
+    """Pushes the simulation's poses to every browser, up to `max_hz` updates a second, from viser's event loop."""
 
     def __init__(self, server: viser.ViserServer, sim: SimThread, gizmo=None, max_hz: float = 60.0) -> None:
         self.server = server
@@ -102,8 +105,10 @@ class SceneDrawer(LoopThread):
         self._last_input = 0.0
         self._last_tick = -1
         self.only_watched = False  # True: no updates while no browser is connected (a campaign's thrift)
-        self._init_thread("teleop-draw")
         self._update_lock = threading.Lock()
+        self._due = 0.0  # perf_counter s: the earliest the next update may go (max_hz)
+        self._running = False
+        self._cued = False  # a cue is queued on viser's loop and has not run yet
         snap = sim.snapshot
         self._generation = snap.generation
         self.model = copy.copy(snap.model)
@@ -118,6 +123,7 @@ class SceneDrawer(LoopThread):
         if gizmo is not None:
             for arm, (pos, quat) in enumerate(snap.targets):
                 self.gizmos.append(self._add_gizmo(arm, pos, quat))
+        self.stream = SceneStream(server)  # after the nodes it updates are made
         self.draw(snap)
 
     def _add_gizmo(self, arm: int, pos: np.ndarray, quat: np.ndarray) -> viser.TransformControlsHandle:
@@ -133,27 +139,38 @@ class SceneDrawer(LoopThread):
 
         return handle
 
-    # -- thread ----------------------------------------------------------
-    def _run(self) -> None:
-        due = time.perf_counter()  # the earliest the next update may go (max_hz)
-        while not self._stop.is_set():
-            self.sim.ticked.clear()  # before the snapshot is read: a tick from now on ends the wait below
-            snap = self.sim.snapshot
-            if self.only_watched and not self.server.get_clients():
-                self._stop.wait(UNWATCHED_WAIT_S)  # no page to draw for: not woken by every tick
-                continue
-            if snap.tick != self._last_tick or snap.generation != self._generation:
-                now = time.perf_counter()
-                if now < due:  # ticks come faster than max_hz: the update waits out its period
-                    self._stop.wait(due - now)
-                    continue
-                due = due + self.period if now - due < self.period else now + self.period
-                try:
-                    self.draw(snap)
-                except Exception as exc:  # noqa: BLE001 - a drawing hiccup must not end the session
-                    print(f"drawing failed: {type(exc).__name__}: {exc}")
-            # Until the loop ticks again: one wake-up an update, no polling (a session's wake-ups cost CPU).
-            self.sim.ticked.wait(TICK_WAIT_S)
+    # -- life cycle ------------------------------------------------------
+    def start(self) -> None:
+        self._running = True
+        self.sim.on_tick = self._cue
+
+    def stop(self, timeout: float | None = None) -> None:
+        self._running = False
+        self.sim.on_tick = None
+
+    def _cue(self) -> None:
+        """In the control loop, after a tick: one call into viser's loop to draw it, unless one is queued or no
+        page would see it (then nothing wakes)."""
+        if self._cued or (self.only_watched and not self.stream.watched()):
+            return
+        self._cued = True  # before the call: the loop may run the draw, which clears it, before the call returns
+        if not self.stream.soon(self._draw_latest):  # viser's loop has closed: the server is stopping
+            self._cued = False
+
+    def _draw_latest(self) -> None:
+        """In viser's event loop: the newest snapshot, if it is new and the update's period is out."""
+        self._cued = False
+        snap = self.sim.snapshot
+        if not self._running or (snap.tick == self._last_tick and snap.generation == self._generation):
+            return
+        now = time.perf_counter()
+        if now < self._due:  # ticks come faster than max_hz: this one is not drawn, a later one is
+            return
+        self._due = self._due + self.period if now - self._due < self.period else now + self.period
+        try:
+            self.draw(snap)
+        except Exception as exc:  # noqa: BLE001 - a drawing hiccup must not end the session
+            print(f"drawing failed: {type(exc).__name__}: {exc}")
 
     # -- one update ------------------------------------------------------
     def draw(self, snap: Snapshot) -> float:
@@ -162,17 +179,20 @@ class SceneDrawer(LoopThread):
             if snap.generation != self._generation:
                 self._rebuild(snap)
             start = time.perf_counter()
-            snap.pose(self.data)
             self._last_tick = snap.tick
             moved = self._moved(snap)
-            # One block for the gizmos, the markers and the bodies: one message per scene node, and one
-            # wake-up of viser's sender when it ends (viser_compat.scene_update), not one per property
-            # set, per atomic block and per flush (mjviser flushes inside its own block besides).
-            with scene_update(self.server):
+            # One block for the gizmos, the markers and the bodies: one message per scene node, all in one
+            # frame written to each page when it ends (viser_compat.SceneStream), not a message per property
+            # set for viser's sender to take in windows.
+            with self.stream.update():
                 self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target
                 if moved:
                     self._draw_markers(snap)
-                    self.bodies.update(self.data)
+                    if self.bodies.entries is None:  # mjviser's own update: it reads an MjData
+                        snap.pose(self.data)
+                        self.bodies.update(self.data)
+                    else:
+                        self.bodies.update(snap)  # the tick's own body poses, no kinematics here
             if not moved:
                 self.skipped += 1
                 return 0.0
@@ -186,7 +206,7 @@ class SceneDrawer(LoopThread):
 
     def _moved(self, snap: Snapshot) -> bool:
         """Whether anything visible moved since the last update sent (a browser redraws on every update)."""
-        poses = np.concatenate([self.data.xpos.ravel(), self.data.xmat.ravel(),
+        poses = np.concatenate([snap.xpos.ravel(), snap.xquat.ravel(),
                                 *(np.concatenate(t) for t in snap.targets), *(np.concatenate(e) for e in snap.ee)])
         if self._sent is not None and self._sent.shape == poses.shape and np.max(np.abs(poses - self._sent)) < MOVE_EPS:
             return False
@@ -215,6 +235,7 @@ class SceneDrawer(LoopThread):
         self.scene.mj_data = mujoco.MjData(self.model)
         self.scene.rebuild_visual_handles()
         self.bodies = BodyPoses(self.scene)
+        self.stream.nodes_created()
         self._generation = snap.generation
         self._sent = None
 

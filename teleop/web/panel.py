@@ -282,7 +282,8 @@ class Panel(LoopThread):
     def _run(self) -> None:
         while not self._stop.wait(1.0 / REFRESH_HZ):
             try:
-                self.refresh()
+                with self.server.atomic():  # the texts that changed reach the pages together, waking viser once
+                    self.refresh()
                 self.app.tick_status()
             except Exception as exc:  # noqa: BLE001 - the panel must not end the session
                 print(f"panel refresh failed: {type(exc).__name__}: {exc}")

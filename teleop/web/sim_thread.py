@@ -47,6 +47,8 @@ class Snapshot:
     qpos: np.ndarray
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
+    xpos: np.ndarray  # (nbody, 3) m, world frame: the bodies' poses at this tick, for drawing
+    xquat: np.ndarray  # (nbody, 4) wxyz
     targets: tuple[tuple[np.ndarray, np.ndarray], ...]
     ee: tuple[tuple[np.ndarray, np.ndarray], ...]
     tracking_error_m: np.ndarray
@@ -94,7 +96,7 @@ class SimThread(LoopThread):
         # Key-to-tick latency: from a stamped input's arrival (devices.base.InputStamped) to the end of the tick
         # that applied it, ms (the last ones, for a median or p95).
         self.tick_latency_ms: collections.deque[float] = collections.deque(maxlen=200)
-        self.ticked = threading.Event()  # set after every tick: the drawer waits on it instead of polling
+        self.on_tick: Callable[[], None] | None = None  # called (in this thread) after every tick: the drawer's cue
         self._stamped = [d for d in self.devices if isinstance(d, InputStamped)]  # checked once: a Protocol check is slow
         self._saved_seen = len(session.recorder.paths) if session.recorder is not None else 0
         self._tick_start = 0.0
@@ -203,7 +205,9 @@ class SimThread(LoopThread):
         self._tick_times.append(stamp)
         while self._tick_times and stamp - self._tick_times[0] > RATE_WINDOW_S:
             self._tick_times.popleft()
-        self.ticked.set()
+        on_tick = self.on_tick
+        if on_tick is not None:
+            on_tick()
 
     def _run_actions(self) -> None:
         while True:
@@ -243,6 +247,8 @@ class SimThread(LoopThread):
             qpos=data.qpos.copy(),
             mocap_pos=data.mocap_pos.copy(),
             mocap_quat=data.mocap_quat.copy(),
+            xpos=data.xpos.copy(),  # the tick ran mj_kinematics: current
+            xquat=data.xquat.copy(),
             targets=tuple(c.target_pose(i) for i in range(c.n_arms)),
             ee=tuple(c.ee_pose(i) for i in range(c.n_arms)),
             tracking_error_m=(c.tracking_errors[-1].copy() if c.tracking_errors else np.zeros(c.n_arms)),
