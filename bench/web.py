@@ -1,7 +1,7 @@
 """Browser session speed: what a scene update costs, what a browser receives, whether the loop keeps real time.
 
 Figures (`measure`):
-  web_update_ms          server-side cost of one scene update in the drawing thread (the snapshot's
+  web_update_ms          server-side cost of one scene update in the thread that draws (the snapshot's
                          body poses into mjviser's handles, markers, gizmo, the frame for the pages
                          built and handed to viser's loop), median, with the arm moving so that every
                          update is sent and one page (a raw websocket client) connected (lift, Panda)

@@ -144,7 +144,7 @@ class SceneDrawer:
         self._running = True
         self.sim.on_tick = self._cue
 
-    def stop(self, timeout: float | None = None) -> None:
+    def stop(self) -> None:
         self._running = False
         self.sim.on_tick = None
 

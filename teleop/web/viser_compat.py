@@ -206,23 +206,25 @@ def _coalesce_scene_updates() -> None:
             return
 
         def queue_update(self, name, value):
-            pending = getattr(_PENDING, "updates", None)
-            if pending is None:
+            if not _pend(self._impl, {name: value}):  # noqa: SLF001
                 return original(self, name, value)
-            impl = self._impl  # noqa: SLF001
-            key = (id(impl.api), impl.name)
-            entry = pending.get(key)
-            if entry is None:
-                pending[key] = (impl.api, impl.name, {name: value})
-            else:
-                entry[2][name] = value
 
         queue_update.coalescing = True  # type: ignore[attr-defined]
         queue_update.original = original  # type: ignore[attr-defined]
         SceneNodeHandle._queue_update = queue_update  # noqa: SLF001
 
 
-_IN_UPDATE = threading.local()  # .open: True while this thread is in a SceneStream.update block
+def _pend(impl, updates: dict) -> bool:
+    """Add a node's property updates to this thread's open SceneStream.update block; False if none is open."""
+    pending = getattr(_PENDING, "updates", None)
+    if pending is None:
+        return False
+    entry = pending.get((id(impl.api), impl.name))
+    if entry is None:
+        pending[(id(impl.api), impl.name)] = (impl.api, impl.name, updates)
+    else:
+        entry[2].update(updates)
+    return True
 
 
 def _quiet_flush_in_updates() -> None:
@@ -233,7 +235,7 @@ def _quiet_flush_in_updates() -> None:
             return
 
         def flush(self) -> None:
-            if not getattr(_IN_UPDATE, "open", False):
+            if getattr(_PENDING, "updates", None) is None:
                 original(self)
 
         flush.quiet_in_updates = True  # type: ignore[attr-defined]
@@ -258,17 +260,8 @@ def set_arrays(handle, **arrays: np.ndarray) -> None:
         else:
             setattr(props, name, value.copy())
         updates[name] = value
-    if not updates:
-        return
-    pending = getattr(_PENDING, "updates", None)
-    if pending is None:
+    if updates and not _pend(impl, updates):
         impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001 - stamps the owner
-        return
-    entry = pending.get((id(impl.api), impl.name))
-    if entry is None:
-        pending[(id(impl.api), impl.name)] = (impl.api, impl.name, updates)
-    else:
-        entry[2].update(updates)
 
 
 class BodyPoses:
@@ -347,11 +340,9 @@ class SceneStream:
             raise RuntimeError("SceneStream.update() inside another scene block")
         _PENDING.updates = pending = {}
         _PENDING.messages = messages = []
-        _IN_UPDATE.open = True
         try:
             yield
         finally:
-            _IN_UPDATE.open = False
             _PENDING.updates = None
             _PENDING.messages = None
         messages += [SceneNodeUpdateMessage(name, updates, owner=api._owner_id)  # noqa: SLF001
