@@ -246,7 +246,7 @@ class SpaceMouseDevice:
     def _run(self) -> None:
         while not self._stop.is_set():
             if self._handle is None and not self._reconnect():
-                self._stop.wait(self.reconnect_interval)
+                self._wait_to_reconnect()
                 continue
             try:
                 data = self._handle.read(64, READ_TIMEOUT_MS)
@@ -255,6 +255,10 @@ class SpaceMouseDevice:
                 continue
             if data:
                 self._take(data)
+
+    def _wait_to_reconnect(self) -> None:
+        """Between tries to open the device (a device plugged in is found by trying)."""
+        self._stop.wait(self.reconnect_interval)
 
     def _reconnect(self) -> bool:
         try:

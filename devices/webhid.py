@@ -19,6 +19,7 @@ from devices.base import DeviceError
 from devices.spacemouse import SpaceMouseDevice
 
 MAX_REPORT_BYTES = 64  # SpaceMouse reports are 7 or 13 bytes with the id; anything longer is not one
+RECONNECT_CHECK_S = 2.0  # s: the reader waiting for a browser's device looks again this often even unwoken
 MAX_QUEUED = 256  # ~2-4 s of reports; older ones are dropped first if the loop cannot keep up
 
 
@@ -63,6 +64,7 @@ class BrowserSpaceMouse:
     def __init__(self) -> None:
         self.handle: BrowserHidHandle | None = None
         self._lock = threading.Lock()
+        self.arrived = threading.Event()  # set by connect(): the reader need not poll for a browser's device
 
     def connect(self, product: str = "") -> BrowserHidHandle:
         """A browser granted a device: new reports go to a new handle (the old one reads as unplugged)."""
@@ -72,6 +74,7 @@ class BrowserSpaceMouse:
             old, self.handle = self.handle, handle
         if old is not None:
             old.close()
+        self.arrived.set()
         return handle
 
     def disconnect(self, handle: BrowserHidHandle | None = None) -> None:
@@ -101,7 +104,17 @@ class WebHidSpaceMouse(SpaceMouseDevice):
 
     def __init__(self, name: str = "webhid-spacemouse", **options) -> None:
         self.source = BrowserSpaceMouse()
-        super().__init__(self.source, name=name, reconnect_interval=0.1, **options)
+        super().__init__(self.source, name=name, **options)
+
+    def close(self) -> None:
+        self._stop.set()
+        self.source.arrived.set()  # wakes the reader waiting for a browser's device
+        super().close()
+
+    def _wait_to_reconnect(self) -> None:
+        """Until a browser connects a device (or close()), not polling: most sessions never get one."""
+        self.source.arrived.wait(RECONNECT_CHECK_S)
+        self.source.arrived.clear()
 
     def start(self) -> None:
         """Read in the background; a device arrives when a browser connects one (no error without one)."""

@@ -238,14 +238,15 @@ class EpisodeWriter:
         pop = self._commands.pop
         commands = [_commands_json(pop(k, ())) for k in range(start, end)]  # encoded once for all sinks
         self._drained = end
-        for sink in self._sinks:
+        for i, sink in enumerate(self._sinks):
+            if i:
+                time.sleep(50e-6)  # let the control thread have the GIL between sinks (not after the last: a wake less)
             try:
                 sink.write(rows, commands)
                 sink.flush()
             except BaseException:
                 self._error_path = sink.path  # _run keeps the error and stops: no file is written again
                 raise
-            time.sleep(50e-6)  # let the control thread have the GIL between sinks
 
     def _abort_sinks(self) -> None:
         """Close every file without finishing it (sinks' abort never raises)."""

@@ -130,6 +130,27 @@ def test_webhid_reports_go_through_the_spacemouse_parser(layout):
         device.close()
 
 
+def test_webhid_reader_waits_for_a_browser_without_polling_and_wakes_when_one_connects():
+    device = WebHidSpaceMouse(deadzone=0.0)
+    tries = []
+    opener = device._opener
+    device._opener = lambda: (tries.append(time.monotonic()), opener())[1]
+    device.start()
+    try:
+        time.sleep(0.6)
+        assert len(tries) <= 2, f"the reader polled for a browser's device {len(tries)} times in 0.6 s"
+        started = time.monotonic()
+        handle = device.source.connect("SpaceMouse Compact")
+        report = encode_combined(350, 0, 0, 0, 0, 0)
+        handle.push(report[0], report[1:])
+        assert wait_until(lambda: device.reports == 1, 3.0)
+        assert time.monotonic() - started < 0.5, "connecting a device did not wake the reader"
+    finally:
+        closing = time.monotonic()
+        device.close()
+    assert time.monotonic() - closing < 1.0 and not device._thread.is_alive()
+
+
 def test_browser_hid_handle_reads_like_hidraw():
     handle = BrowserHidHandle()
     assert handle.read(64, 10) == []

@@ -121,3 +121,24 @@ def test_world_and_ee_frame_deltas():
     # The Panda's hand points down at home: +z in the EE frame is world -z.
     session.step([Command(translation=np.array([0.0, 0.0, 0.01]), frame="ee")])
     assert np.allclose(session.controller.target_pose(0)[0] - p0, [0, 0, 0.0], atol=1e-3)
+
+
+@pytest.mark.parametrize("scene", ["lift", "stack"])
+def test_success_is_judged_once_a_tick(scene):
+    """A task with a `hold` (lift) is judged by the step, one without (stack) on the first ask: either way the
+    page's snapshot asking again in the same tick does not judge twice, and the answer is the predicate's."""
+    session = Session(scene=scene)
+    c = session.controller
+    task = c.scene.task
+    judge = task.success
+    calls: list[float] = []
+    task.success = lambda model, data: (calls.append(data.time), judge(model, data))[1]
+    for tick in range(1, 4):
+        before = len(calls)
+        c.step([Command(translation=np.array([0.0, 0.0, 0.002]))])
+        first, again = c.success(), c.success()
+        assert len(calls) - before == 1, f"tick {tick}: judged {len(calls) - before} times"
+        assert first == again == judge(c.model, c.data)
+    c.data.time += c.dt  # the state changed outside a step: judged afresh
+    c.success()
+    assert len(calls) == 4

@@ -388,6 +388,24 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
         with stream.update():
             ours.update(data)
         assert not [m for m in queued if isinstance(m, SceneNodeUpdateMessage)], "an unchanged pose is sent again"
+        # A hidden node is not given poses; shown again, it gets the ones it missed though nothing moved since.
+        hand, bodies, _ = next(e for e in ours.entries if e[0].visible and "/hand/" in e[0].name)  # moves with qpos
+        hand.visible = False
+        data.qpos[:7] += 0.1
+        mujoco.mj_kinematics(model, data)
+        queued.clear()
+        with stream.update():
+            ours.update(data)
+        names = [m.name for m in queued if isinstance(m, SceneNodeUpdateMessage)]
+        assert hand.name not in names and len(names) >= 5
+        hand.visible = True
+        queued.clear()
+        with stream.update():
+            ours.update(data)
+        (shown,) = [m for m in queued if isinstance(m, SceneNodeUpdateMessage)]
+        assert shown.name == hand.name and set(shown.updates) == {"batched_positions", "batched_wxyzs"}
+        assert np.allclose(hand.batched_positions, data.xpos[bodies], atol=1e-6)
+        queued.clear()
         # mjviser's own update (BodyPoses' fallback) through viser's setters: one message per node as well
         data.qpos[:7] -= 0.2
         mujoco.mj_kinematics(model, data)
@@ -487,6 +505,12 @@ def test_scene_stream_frames_are_viser_s_wire_format_after_the_nodes_and_whole_f
             set_arrays(axes, batched_positions=positions)
         server.flush()  # were it in viser's buffer too, its sender would send it now
         again = frames_for(first, 1.0)
+        for _ in range(10):  # a page skipped while viser's sender was mid-write gets the whole state at the next block
+            if any(updated(m) for frame in again for m in frame[0]):
+                break
+            with stream.update():  # as the drawer's every tick: nothing changed
+                pass
+            again += frames_for(first, 0.3)
         assert sum(updated(m) for frame in again for m in frame[0]) == 1, "an update went out twice"
         # A page that opens now gets the newest state whole at the next update, though nothing changed since.
         with connect(url, subprotocols=[VISER_PROTOCOL], max_size=None) as second:

@@ -61,10 +61,13 @@ class Scene:
     def success(self, data: mujoco.MjData) -> bool:
         return self.task.success(self.model, data)
 
-    def observe(self, data: mujoco.MjData) -> None:
-        """Called after every control tick: a task with a `hold` times how long its success has held."""
+    def observe(self, data: mujoco.MjData) -> bool | None:
+        """Called after every control tick: a task with a `hold` times how long its success has held.
+
+        Returns that tick's success when it judged it (a `hold`), else None."""
         if self.task.hold > 0:
-            self.task.success(self.model, data)
+            return bool(self.task.success(self.model, data))
+        return None
 
     @property
     def instruction(self) -> str:

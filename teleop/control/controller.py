@@ -145,6 +145,7 @@ class Controller:
         self._inside_reach2 = (self.reach * (1.0 - 1e-9)) ** 2  # m^2, clear of the reach test's rounding
         self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
         self.steps = 0
+        self._judged: tuple[int, float, bool] | None = None  # (steps, sim time, success) the step judged
         # Per-tick errors for summaries; bounded so a long browser session does not grow without end.
         self.tracking_errors: deque[np.ndarray] = deque(maxlen=TRACKING_HISTORY)
 
@@ -184,7 +185,13 @@ class Controller:
         return self.data.xquat[bid].copy()
 
     def success(self) -> bool:
-        return self.scene.success(self.data)
+        """The task's success predicate now; judged once a tick (a task with a `hold` is judged by the step)."""
+        judged = self._judged
+        if judged is not None and judged[0] == self.steps and judged[1] == self.data.time:
+            return judged[2]
+        ok = bool(self.scene.success(self.data))
+        self._judged = (self.steps, self.data.time, ok)
+        return ok
 
     # --- commands ------------------------------------------------------------
 
@@ -304,12 +311,13 @@ class Controller:
 
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
-        self.scene.observe(self.data)  # a task whose success must hold for a while is timed every tick
+        self.steps += 1
+        judged = self.scene.observe(self.data)  # a task whose success must hold for a while is timed every tick
+        self._judged = None if judged is None else (self.steps, self.data.time, judged)
 
         site_xpos = self.data.site_xpos
         errors = np.array([norm(site_xpos[a.site_id] - a.target_pos) for a in self.arms])
         self.tracking_errors.append(errors)
-        self.steps += 1
         if observer is not None:
             observer.after_physics(self, commands)
         return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
