@@ -345,7 +345,8 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
     from viser._messages import SceneNodeUpdateMessage
 
     import teleop
-    from teleop.web.viser_compat import BodyPoses, SceneStream
+    from teleop.web.body_poses import BodyPoses
+    from teleop.web.viser_compat import SceneStream
 
     session = teleop.Session(scene="lift", robot="panda", seed=0)
     model = session.controller.model

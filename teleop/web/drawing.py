@@ -8,7 +8,7 @@ Drawing never reads the physics MjData: it draws the body poses of the latest
 Snapshot (copied at the end of a tick). It runs
 in viser's event loop, cued by each tick of the control loop (at most `max_hz`
 times a second, and only when the state changed): the poses go into mjviser's
-batched handles (viser_compat.BodyPoses), and they, the markers and the gizmos
+batched handles (body_poses.BodyPoses), and they, the markers and the gizmos
 go out as one frame written to each page from there (viser_compat.SceneStream).
 Waking a thread costs ~0.1-0.25 ms of CPU on the project's virtual machine, a
 good part of a session's cost when many run on one: a tick wakes the control
@@ -36,7 +36,8 @@ import viser
 from mjviser import ViserMujocoScene
 
 from teleop.web.sim_thread import SimThread, Snapshot
-from teleop.web.viser_compat import BodyPoses, SceneStream, quick_array_casts, set_arrays
+from teleop.web.body_poses import BodyPoses
+from teleop.web.viser_compat import SceneStream, quick_array_casts, set_arrays
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)

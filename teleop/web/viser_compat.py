@@ -54,12 +54,8 @@ breaks one:
   stored array's dtype, nothing sent when equal, the stored array updated in place, a
   private copy queued: `AssignablePropsBase`'s `props_setattr`), for several of one
   node's properties at once and without its per-call type checks: one message.
-- `BodyPoses`: mjviser's `update_from_mjdata` for our pages (one environment, no camera
-  tracking, no overlay, no convex hulls), from mjviser's handles (`_mesh_groups`: each
-  `handle`, `body_ids`, `mocap_ids`; `site_handles_by_group`) and MuJoCo's own body
-  quaternions (`xquat`, which mjviser recomputes from `xmat` each update). It costs
-  about a third of mjviser's update; where mjviser is not as described (another
-  release, an overlay switched on), it calls mjviser's update.
+- `send_updates`: a node's updates into the open block, or to viser as one message
+  (`teleop.web.body_poses.BodyPoses` sets mjviser's body handles through it).
 """
 
 from __future__ import annotations
@@ -260,92 +256,15 @@ def set_arrays(handle, **arrays: np.ndarray) -> None:
         else:
             setattr(props, name, value.copy())
         updates[name] = value
-    if updates and not _pend(impl, updates):
-        impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001 - stamps the owner
+    if updates:
+        send_updates(impl, updates)
 
 
-class BodyPoses:
-    """Puts an MjData's body poses (world frame) into a ViserMujocoScene's handles, as its update_from_mjdata does."""
-
-    def __init__(self, scene) -> None:
-        self.scene = scene
-        self.entries = self._entries(scene)  # None: mjviser's own update
-        self._layout = self._rows(scene, self.entries) if self.entries is not None else None
-        self._sent: tuple[np.ndarray, np.ndarray] | None = None  # (positions, wxyzs) as last given, float32
-
-    @staticmethod
-    def _rows(scene, entries: list) -> tuple[np.ndarray, np.ndarray, bool] | None:
-        """Every entry's poses as rows of one array (xpos, then mocap_pos): (rows, entry starts, any mocap).
-
-        None where a handle's stored poses are not float32 rows of its bodies (then each goes through set_arrays)."""
-        nbody = scene.mj_model.nbody
-        rows, starts = [], [0]
-        for handle, bodies, mocaps in entries:
-            props = handle._impl.props  # noqa: SLF001
-            these = bodies if mocaps is None else nbody + mocaps
-            if (not len(these) or props.batched_positions.dtype != np.float32 or props.batched_wxyzs.dtype != np.float32
-                    or props.batched_positions.shape != (len(these), 3) or props.batched_wxyzs.shape != (len(these), 4)):
-                return None
-            rows.append(these)
-            starts.append(starts[-1] + len(these))
-        return np.concatenate(rows), np.array(starts), any(m is not None for _, _, m in entries)
-
-    @staticmethod
-    def _entries(scene) -> list | None:
-        try:
-            if (scene._any_decor_visible() or scene._show_convex_hull  # noqa: SLF001
-                    or scene.camera_tracking_enabled or scene.num_envs != 1):
-                return None
-            entries = [(g.handle, np.asarray(g.body_ids), None if g.mocap_ids is None else np.asarray(g.mocap_ids))
-                       for g in scene._mesh_groups]  # noqa: SLF001
-            entries += [(h, np.array([body]), None) for (body, _), h in scene.site_handles_by_group.items()]
-        except AttributeError:
-            return None
-        return entries
-
-    def update(self, data) -> None:
-        """data: an MjData; or, when `entries` is not None, anything holding an MjData's xpos, xquat, mocap_pos
-        and mocap_quat (teleop.web.sim_thread.Snapshot)."""
-        if self.entries is None:
-            self.scene.update_from_mjdata(data)
-            return
-        if self._layout is not None:
-            self._update_rows(data, *self._layout)
-            return
-        for handle, bodies, mocaps in self.entries:
-            if not handle.visible:
-                continue
-            if mocaps is None:
-                set_arrays(handle, batched_positions=data.xpos[bodies], batched_wxyzs=data.xquat[bodies])
-            else:
-                set_arrays(handle, batched_positions=data.mocap_pos[mocaps], batched_wxyzs=data.mocap_quat[mocaps])
-
-    def _update_rows(self, data, rows: np.ndarray, starts: np.ndarray, mocap: bool) -> None:
-        """set_arrays for every entry at once: one gather, cast and comparison for all the bodies, then a message
-        for each node whose poses changed (what set_arrays would send): 82 µs an update on lift, against 143 µs
-        node by node."""
-        pos = (np.concatenate((data.xpos, data.mocap_pos)) if mocap else data.xpos)[rows].astype(np.float32)
-        quat = (np.concatenate((data.xquat, data.mocap_quat)) if mocap else data.xquat)[rows].astype(np.float32)
-        if self._sent is None:
-            pos_moved = quat_moved = np.ones(len(self.entries), dtype=bool)
-        else:
-            pos_moved = np.logical_or.reduceat((pos != self._sent[0]).any(axis=1), starts[:-1])
-            quat_moved = np.logical_or.reduceat((quat != self._sent[1]).any(axis=1), starts[:-1])
-        self._sent = (pos, quat)
-        for i in np.flatnonzero(pos_moved | quat_moved):
-            handle = self.entries[i][0]
-            impl = handle._impl  # noqa: SLF001
-            lo, hi = starts[i], starts[i + 1]
-            if impl.removed or not handle.visible:  # not given: sent once it shows again
-                pos[lo:hi] = quat[lo:hi] = np.nan
-                continue
-            props, updates = impl.props, {}
-            if pos_moved[i]:
-                props.batched_positions[...] = updates["batched_positions"] = pos[lo:hi]
-            if quat_moved[i]:
-                props.batched_wxyzs[...] = updates["batched_wxyzs"] = quat[lo:hi]
-            if not _pend(impl, updates):
-                impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001
+def send_updates(impl, updates: dict) -> None:
+    """A node's (`handle._impl`) property updates, already stored in its props: into this thread's open
+    SceneStream.update block, else to viser as one message (its scene API stamps the owner)."""
+    if not _pend(impl, updates):
+        impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001
 
 
 class SceneStream:
