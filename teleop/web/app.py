@@ -134,7 +134,7 @@ class WebApp:
         if camera and session.scene.cameras:
             self.camera = CameraFeed(
                 lambda: self.sim.snapshot, tuple(session.scene.cameras), lambda: self.panel.camera_name, self.panel.show_image,
-                self._camera_failed, wanted=lambda: bool(self.server.get_clients()),
+                self._camera_failed, wanted=lambda: bool(self.server.get_clients()), notice=self.panel.camera_note,
             )
         elif camera:
             self.panel.camera_failed("this scene has no cameras")
@@ -318,6 +318,8 @@ class WebApp:
             "key_to_tick_ms": [round(v, 2) for v in list(self.sim.tick_latency_ms)[-50:]],  # the newest, oldest first
             "gizmo_drags": self.gizmo.drags if self.gizmo is not None else 0,
             "camera_frames": self.camera.frames if self.camera is not None else 0,
+            "camera_still": self.camera.still if self.camera is not None else 0,  # pictures not redrawn: nothing moved
+            "camera_crowded": self.camera.crowded if self.camera is not None else False,  # one picture a second
             "camera_problem": self.camera.problem if self.camera is not None else None,
             "devices": {d.name: self.sim.device_problems.get(d.name) or d.status() for d in self.devices},
             "devices_not_started": list(self.device_problems),

@@ -17,10 +17,16 @@ from collections.abc import Callable
 import numpy as np
 
 from scenes.errors import first_line
+from teleop.web.cpu_pressure import cpu_pressure
 from teleop.web.loop_thread import LoopThread
 
 IMAGE_SIZE = (192, 144)  # width, height
 FRAME_HZ = 4.0
+STILL_EPS = 1e-4  # m (and quaternion units): bodies that moved less than this since the last picture change no pixel
+# When the machine's CPUs are crowded (teleop.web.cpu_pressure: some task waited for a CPU this share of the last
+# ~10 s), the picture comes at BUSY_HZ: the control loop and the 3D view need the cores more than a thumbnail does.
+BUSY_PRESSURE = 50.0  # %
+BUSY_HZ = 1.0
 _GL_PROBLEM: str | None = None  # set once GL failed in this process: a second try can hang (GLFW)
 
 
@@ -32,7 +38,8 @@ def warm_up() -> None:
 
 
 class CameraFeed(LoopThread):
-    """Renders `camera()` from the latest snapshot into `show(image)` at `hz`."""
+    """Renders `camera()` from the latest snapshot into `show(image)` at `hz`, or `busy_hz` while `pressure()` (CPU
+    pressure, percent) is at least `busy_pressure`; `notice(text)` says so on the page ("" once it is over)."""
 
     join_timeout = 3.0
 
@@ -46,6 +53,10 @@ class CameraFeed(LoopThread):
         wanted: Callable[[], bool] = lambda: True,
         size: tuple[int, int] = IMAGE_SIZE,
         hz: float = FRAME_HZ,
+        pressure: Callable[[], float | None] = cpu_pressure,
+        busy_pressure: float = BUSY_PRESSURE,
+        busy_hz: float = BUSY_HZ,
+        notice: Callable[[str], None] = lambda text: None,
     ) -> None:
         self.get_snapshot = get_snapshot
         self.cameras = list(cameras)
@@ -55,7 +66,13 @@ class CameraFeed(LoopThread):
         self.wanted = wanted
         self.size = size
         self.period = 1.0 / hz
+        self.pressure = pressure
+        self.busy_pressure = busy_pressure
+        self.busy_period = max(self.period, 1.0 / busy_hz)
+        self.notice = notice
+        self.crowded = False  # the picture is at busy_hz now
         self.frames = 0
+        self.still = 0  # pictures not rendered: nothing had moved since the one shown
         self.problem: str | None = None
         self.ready = threading.Event()  # set once the renderer exists (or failed)
         self._init_thread("teleop-camera")
@@ -88,24 +105,53 @@ class CameraFeed(LoopThread):
             return
         data = mujoco.MjData(snap.model)
         generation = snap.generation
+        shown: tuple | None = None  # (generation, camera, body poses) of the picture on the page
         try:
             while not self._stop.is_set():
                 started = time.perf_counter()
                 snap = self.get_snapshot()
+                period = self.period
                 if self.wanted():
+                    if self._crowded():
+                        period = self.busy_period
                     if snap.generation != generation:  # a reset compiled a new model: same context, new model
                         renderer.load(snap.model)
                         data = mujoco.MjData(snap.model)
                         generation = snap.generation
-                    snap.pose(data)
-                    mujoco.mj_comPos(snap.model, data)
-                    mujoco.mj_camlight(snap.model, data)
                     name = self.camera()
-                    self.show(renderer.render(data, name if name in self.cameras else 0))
-                    self.frames += 1
-                self._stop.wait(max(0.0, self.period - (time.perf_counter() - started)))
+                    poses = np.concatenate((snap.xpos.ravel(), snap.xquat.ravel()))
+                    if self._still(shown, generation, name, poses):  # an idle operator's page keeps its picture
+                        self.still += 1
+                    else:
+                        snap.pose(data)
+                        mujoco.mj_comPos(snap.model, data)
+                        mujoco.mj_camlight(snap.model, data)
+                        self.show(renderer.render(data, name if name in self.cameras else 0))
+                        self.frames += 1
+                        shown = (generation, name, poses)
+                else:
+                    shown = None  # no page: the next one gets a picture at once
+                self._stop.wait(max(0.0, period - (time.perf_counter() - started)))
         except Exception as exc:  # noqa: BLE001 - the picture stops, the session goes on
             self.problem = f"camera images stopped: {type(exc).__name__}: {exc}"
             self.fail(self.problem)
         finally:
             renderer.close()
+
+    def _crowded(self) -> bool:
+        """Whether the CPUs are crowded now; tells the page when that changes."""
+        pressure = self.pressure()
+        crowded = pressure is not None and pressure >= self.busy_pressure
+        if crowded != self.crowded:
+            self.crowded = crowded
+            every = f"{self.busy_period:g} s"
+            self.notice(f"*one picture every {every} while this machine's CPUs are busy (CPU pressure "
+                        f"{self.busy_pressure:g} % or more)*" if crowded else "")
+        return crowded
+
+    @staticmethod
+    def _still(shown: tuple | None, generation: int, camera: str, poses: np.ndarray) -> bool:
+        """Whether the picture shown is still what the camera sees: same model, same camera, no body moved."""
+        if shown is None or shown[0] != generation or shown[1] != camera or shown[2].shape != poses.shape:
+            return False
+        return bool(np.max(np.abs(poses - shown[2])) < STILL_EPS)

@@ -183,6 +183,10 @@ class Panel(LoopThread):
     def show_image(self, image: np.ndarray) -> None:
         self.camera_image.image = image
 
+    def camera_note(self, text: str) -> None:
+        """A line under the picture (markdown; "" for none): why it comes slower, say."""
+        self.camera_md.content = text
+
     def camera_failed(self, message: str) -> None:
         self.camera_image.visible = False
         self.camera_md.content = f"*{message}*"
