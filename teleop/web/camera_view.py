@@ -39,7 +39,7 @@ def warm_up() -> None:
 
 class CameraFeed(LoopThread):
     """Renders `camera()` from the latest snapshot into `show(image)` at `hz`, or `busy_hz` while `pressure()` (CPU
-    pressure, percent) is at least `busy_pressure`; `notice(text)` says so on the page ("" once it is over)."""
+    pressure, percent) is at least `busy_pressure`; `notice(text)` says so, in plain text ("" once it is over)."""
 
     join_timeout = 3.0
 
@@ -145,13 +145,14 @@ class CameraFeed(LoopThread):
         if crowded != self.crowded:
             self.crowded = crowded
             every = f"{self.busy_period:g} s"
-            self.notice(f"*one picture every {every} while this machine's CPUs are busy (CPU pressure "
-                        f"{self.busy_pressure:g} % or more)*" if crowded else "")
+            self.notice(f"one picture every {every} while this machine's CPUs are busy (CPU pressure "
+                        f"{self.busy_pressure:g} % or more)" if crowded else "")
         return crowded
 
     @staticmethod
     def _still(shown: tuple | None, generation: int, camera: str, poses: np.ndarray) -> bool:
-        """Whether the picture shown is still what the camera sees: same model, same camera, no body moved."""
-        if shown is None or shown[0] != generation or shown[1] != camera or shown[2].shape != poses.shape:
+        """Whether the picture shown is still what the camera sees: same model (so the same bodies), same camera,
+        no body moved."""
+        if shown is None or shown[0] != generation or shown[1] != camera:
             return False
         return bool(np.max(np.abs(poses - shown[2])) < STILL_EPS)

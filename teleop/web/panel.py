@@ -184,8 +184,8 @@ class Panel(LoopThread):
         self.camera_image.image = image
 
     def camera_note(self, text: str) -> None:
-        """A line under the picture (markdown; "" for none): why it comes slower, say."""
-        self.camera_md.content = text
+        """A line under the picture, as a failure's ("" for none): why it comes slower, say."""
+        self.camera_md.content = f"*{text}*" if text else ""
 
     def camera_failed(self, message: str) -> None:
         self.camera_image.visible = False
