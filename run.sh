@@ -104,7 +104,7 @@ case "$first" in
     test)
         shift || true
         debian_test_packages
-        make_venv "test,lerobot,train,cluster"
+        make_venv "test,lerobot,train,cluster,hardware"
         robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
         checks=0  # CI: the linter and a normal (non-editable) install before the tests; the tests run either way

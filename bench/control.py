@@ -12,6 +12,8 @@ Figures (`measure`), Panda lift at 20 Hz control with 25 physics steps of 2 ms:
   tick_overhead_us         what is neither physics nor IK in a tick (command handling, clamp, ctrl
                            write, poses after the step, bookkeeping): per tick, step - physics - IK
                            solve, median
+  tick_parts_us            each part of a tick on its own, median (tick_parts): commands, ik, ctrl,
+                           physics, poses, judge, errors, rest
   control_realtime_factor  control period / control_step_ms
   robosuite_step_ms        robosuite's own Lift Panda env.step (default OSC controller, 20 Hz,
                            25 x 2 ms), median; timed in blocks alternating with ours in this run.
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -132,6 +135,49 @@ def ik_max_diff_vs_mink(n: int, seed: int = 0) -> float:
     return worst
 
 
+def tick_parts(session, center: np.ndarray, quat: np.ndarray, n: int) -> dict[str, float]:
+    """Each part of a control tick on its own, median us over `n` ticks of the same moving target: the
+    command folded into the target (`commands`), the IK solve (`ik`), the joint and gripper ctrl written
+    around it (`ctrl`), the physics (`physics`), the poses after it (`poses`), the task judged and its hold
+    timed (`judge`: tasks with a `hold`) and the tracking error (`errors`); `measure` adds `rest`: what
+    `tick_overhead_us` holds beyond these (events, the observer hooks, the result). A part added to every
+    tick shows here."""
+    controller = session.controller
+    model, data = controller.model, controller.data
+    arm = controller.arms[0]
+    observe = controller.scene.observer(data)
+    scratch = mujoco.MjData(model)
+    times: dict[str, list[float]] = {k: [] for k in ("commands", "ik", "ctrl", "physics", "poses", "judge", "errors")}
+    clock = time.perf_counter
+    for i in range(n):
+        command = Command(target_pos=center + _circle(i), target_quat=quat)
+        mujoco.mj_copyData(scratch, model, data)
+        t0 = clock()
+        controller.apply(command)
+        t1 = clock()
+        arm.ik.solve(arm.target_pos, arm.target_quat)
+        t2 = clock()
+        scratch.ctrl[arm.ctrl_index] = arm.ik.q
+        if arm.gripper_id is not None:
+            scratch.ctrl[arm.gripper_id] = arm.ik.arm.gripper.open
+        t3 = clock()
+        mujoco.mj_step(model, scratch, nstep=session.substeps)
+        t4 = clock()
+        mujoco.mj_kinematics(model, scratch)
+        t5 = clock()
+        if observe is not None:
+            observe()
+        t6 = clock()
+        errors = np.array([math.sqrt(float((scratch.site_xpos[a.site_id] - a.target_pos).dot(scratch.site_xpos[a.site_id] - a.target_pos)))
+                           for a in controller.arms])
+        controller.tracking_errors.append(errors)
+        t7 = clock()
+        mujoco.mj_copyData(data, model, scratch)  # the scene moves on as a tick would have moved it
+        for key, span in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
+            times[key].append(span * 1e6)
+    return {key: round(float(np.median(v)), 1) for key, v in times.items()}
+
+
 def measure(quick: bool = False) -> dict[str, float]:
     from teleop.control.session import Session
 
@@ -193,6 +239,7 @@ def measure(quick: bool = False) -> dict[str, float]:
         del arm.ik.solve
         if robosuite is not None:
             robosuite.close()
+    parts = tick_parts(session, center, quat, 300 if quick else 1500)
     control_step_ms = float(np.median(step_ms))
     physics_step_ms = float(np.median(physics_ms))
     out = {
@@ -201,6 +248,8 @@ def measure(quick: bool = False) -> dict[str, float]:
         "physics_step_ms": round(physics_step_ms, 4),
         "control_overhead_x": round(control_step_ms / physics_step_ms, 2),
         "tick_overhead_us": round(float(np.median(overhead_us)), 1),
+        "tick_parts_us": {**parts, "rest": round(max(0.0, float(np.median(overhead_us)) - sum(
+            v for k, v in parts.items() if k not in ("ik", "physics"))), 1)},
         "control_realtime_factor": round(session.dt * 1e3 / control_step_ms, 1),
     }
     if robosuite_ms:

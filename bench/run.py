@@ -16,7 +16,8 @@ from rich.console import Console
 
 from teleop.cli.json_output import json_stdout, print_json
 
-MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "cameras", "tasks", "grasp", "review", "campaign")
+MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "cameras", "tasks", "grasp", "review",
+           "leader", "campaign")
 # Run only when named in --only: a train-and-evaluate loop (~30 min on 2 cores); generation on every task (~20 min); up to 48 campaign sessions
 SLOW = ("e2e", "tasks", "campaign")
 

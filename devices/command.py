@@ -3,7 +3,8 @@
 Units are explicit so that a device never has to guess what "one step" means:
 translations in metres, rotations in radians (axis-angle), both as deltas for
 this control tick, in the frame named by `frame`. A device may instead (or as
-well) give an absolute target pose in the world frame.
+well) give an absolute target pose in the world frame, or (a leader arm) joint
+position targets in radians that the session applies without IK.
 """
 
 from __future__ import annotations
@@ -39,6 +40,14 @@ class Command:
         "record": start or save), or "policy" (give control back to the policy driving
         a served session).
     source: the device's name, for logs and recordings.
+    joints: joint position targets (radians, the arm's joints in the robot's own
+        order: `SessionView.joint_names`), applied without IK and clamped to the
+        joint ranges; the arm holds them until an end-effector command (a delta
+        or an absolute target) arrives. The translation, rotation and target
+        fields of a command that carries joints are not used.
+    gripper_opening: 0 closed .. 1 open (clamped): sets the gripper actuator's
+        ctrl linearly between its closed and open positions, until the next one
+        or a `gripper` open/close/toggle.
     """
 
     translation: np.ndarray = field(default_factory=_zeros3)
@@ -50,6 +59,8 @@ class Command:
     arm: int = 0
     events: tuple[str, ...] = ()
     source: str = ""
+    joints: np.ndarray | None = None
+    gripper_opening: float | None = None
 
     def is_idle(self) -> bool:
         """True when the command asks for nothing at all."""
@@ -57,6 +68,8 @@ class Command:
             self.target_pos is None
             and self.target_quat is None
             and self.gripper is None
+            and self.joints is None
+            and self.gripper_opening is None
             and not self.events
             and not np.any(self.translation)
             and not np.any(self.rotation)
@@ -74,4 +87,6 @@ class Command:
             "arm": int(self.arm),
             "events": list(self.events),
             "source": self.source,
+            "joints": None if self.joints is None else np.ravel(np.asarray(self.joints, dtype=float)).tolist(),
+            "gripper_opening": None if self.gripper_opening is None else float(self.gripper_opening),
         }

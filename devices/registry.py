@@ -8,6 +8,10 @@ Spec words:
                                 arm=K, right=ACTION, sensitivity=F, deadzone=F
   script:FILE                   commands replayed from a JSON file
   gizmo                         the browser's transform gizmo
+  so101_leader:PORT[:OPTION...] a LeRobot leader arm (also so100_leader, koch_leader); OPTION:
+                                id=NAME, calibration=DIR, map=FILE, scale=F, arm=K (values keep
+                                their case; PORT may hold ':'). One that cannot start stops the
+                                command (devices/lerobot_leader.py)
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from devices.base import Device, DeviceError
+from devices.lerobot_leader import LeaderError, make_leader  # LeRobot itself is imported only when a leader starts
 
 
 @dataclass
@@ -35,6 +40,8 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
     """Build one device from its spec word; raises DeviceError for unknown words."""
     name, _, arg = spec.partition(":")
     name = name.strip().lower()
+    if name in LEADER_DEVICES:
+        return make_leader(name, arg, options.n_arms)  # case-preserving options, PORT may hold ':'
     if name == "script":
         from devices.script import ScriptDevice
 
@@ -171,8 +178,9 @@ def _expand(word: str) -> list[str]:
 
 
 BROWSER_DEVICES = ("gamepad", "phone", "webhid")  # fed by the operator's browser (teleop serve)
-KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script", *BROWSER_DEVICES)
-KNOWN_TEXT = "keyboard, spacemouse[:N], gizmo, script:FILE, gamepad, phone, webhid"
+LEADER_DEVICES = ("so101_leader", "so100_leader", "koch_leader")  # LeRobot leader arms on a serial port
+KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script", *BROWSER_DEVICES, *LEADER_DEVICES)
+KNOWN_TEXT = "keyboard, spacemouse[:N], gizmo, script:FILE, gamepad, phone, webhid, so101_leader:PORT, so100_leader:PORT, koch_leader:PORT"
 # What a browser session opens unless told otherwise: the page's inputs, and this machine's keyboard and SpaceMouse.
 SERVE_DEVICES = ("gizmo", "keyboard", "spacemouse", *BROWSER_DEVICES)
 
@@ -188,7 +196,8 @@ def open_devices(
     `require_any`, and a word naming no known device, when `require_known`
     (the browser session, where nothing else would tell the user). A started
     device may carry a caveat (`Cautioned`: a keyboard under Wayland) for the
-    session to print.
+    session to print. A leader arm that cannot start raises its LeaderError (the devices
+    started before it are closed): a session must not run without the arm it was asked for.
     """
     started: list[Device] = []
     problems: list[str] = []
@@ -202,6 +211,10 @@ def open_devices(
         try:
             device = make_device(word, options)
             device.start()
+        except LeaderError:
+            for d in started:  # a leader arm that cannot start stops the command (one line, exit 2)
+                d.close()
+            raise
         except (DeviceError, OSError) as exc:
             problems.append(f"{word}: {exc}")
             continue

@@ -492,8 +492,10 @@ class CampaignProcess:
 
 
 def campaign_session_status(out: Path, session_id: str) -> dict:
-    """A campaign session's status file (teleop serve's status JSON), {} before its first write."""
+    """A campaign session's status (its SessionStatus, with the rest of teleop serve's status under `serve`
+    merged in), {} before its first write."""
     try:
-        return json.loads((out / ".campaign" / "sessions" / f"{session_id}.status.json").read_text())
+        doc = json.loads((out / ".campaign" / "sessions" / f"{session_id}.status.json").read_text())
     except (OSError, ValueError):
         return {}
+    return {**doc.pop("serve", {}), **doc}

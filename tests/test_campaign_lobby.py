@@ -15,6 +15,7 @@ import pytest
 from teleop.campaign.file import load_campaign
 from teleop.campaign.ledger import issue_invites
 from teleop.campaign.lobby import JOIN_BURST, Lobby, start_lobby
+from teleop.web.access import TokenThrottle
 
 ADMIN, JOIN = "admin-token-1", "join-token-1"
 
@@ -72,6 +73,7 @@ def test_bad_joins_get_a_4xx_and_one_line(lobby):
 
 def test_admin_pages_need_the_admin_token_and_the_join_token_is_not_it(lobby):
     lobby_, port = lobby
+    lobby_.gate.throttle = TokenThrottle(fails=1000)  # this test counts 403s: the throttle's 429s have tests of their own
     for token in ("", JOIN, "nope-nope"):
         for method, path in (("GET", "/api/status"), ("GET", "/admin"), ("POST", "/api/pause"), ("POST", "/api/end")):
             status, answer = ask(port, method, f"{path}?token={token}")
@@ -80,6 +82,9 @@ def test_admin_pages_need_the_admin_token_and_the_join_token_is_not_it(lobby):
     status, page = ask(port, "GET", f"/join?token={JOIN}")
     assert status == 200 and "<form" in page
     status, answer = ask(port, "GET", f"/api/status?token={ADMIN}")
+    timeline = answer.pop("timeline", None)  # successful episodes per hour for the admin page's plot: none yet
+    assert timeline is not None and timeline["campaign"] == [0] and timeline["operators"] == {}
+    assert timeline["tasks"] == {"lift": [0], "stack": [0]} and timeline["hour_s"] == 3600
     assert status == 200 and answer == {
         "campaign": "c", "sessions": [], "tasks": [{"task": "lift", "wanted": 2, "done": 0, "episodes": 0},
                                             {"task": "stack", "wanted": 3, "done": 0, "episodes": 0}],

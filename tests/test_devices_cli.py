@@ -124,3 +124,95 @@ def test_holding_w_in_teleop_run_moves_the_end_effector_forward_by_speed_times_t
     sources = {c.get("source") for step in episode.commands for c in step}
     assert "keyboard" in sources
     assert np.all(np.diff(episode.ee_target[:, 0, 0]) >= -1e-9)  # never moved backward
+
+
+# -- serial ports: leader and follower arms found through LeRobot's own buses --------------------------------
+
+
+@pytest.mark.e2e
+def test_devices_probes_named_ports_and_lists_the_servos_and_arm_types_they_fit(tmp_path):
+    """A Feetech bus (6 x STS3215, 1 Mbaud) and a Dynamixel one (6 x XL330-M077 at 57,600 baud: found by the
+    third probe, after Feetech and Dynamixel at 1 Mbaud found nothing) on ptys named with --port."""
+    pytest.importorskip("lerobot.motors.feetech", reason="needs the hardware extra")
+    from tests.servo_emulator import DynamixelEmulator, FeetechEmulator
+
+    with FeetechEmulator.start(tmp_path) as so101, DynamixelEmulator.start(tmp_path, baudrate=57_600) as koch:
+        ports = ("--port", so101.port, "--port", koch.port)
+        result = teleop("devices", "--json", *ports, display=None)
+        assert result.returncode == 0, result.stderr
+        serial = {row["port"]: row for row in json.loads(result.stdout)["serial"]}
+        assert {"port", "by_id", "servos", "fits"} <= set(serial[so101.port])
+        assert serial[so101.port]["servos"] == [
+            {"id": i, "model": "sts3215", "model_number": 777, "protocol": "feetech", "baudrate": 1_000_000} for i in range(1, 7)]
+        assert set(serial[so101.port]["fits"]) == {"so100_leader", "so100_follower", "so101_leader", "so101_follower"}
+        assert [(s["id"], s["model"], s["baudrate"]) for s in serial[koch.port]["servos"]] == [(i, "xl330-m077", 57_600) for i in range(1, 7)]
+        assert serial[koch.port]["fits"] == ["koch_leader"]
+        assert serial[so101.port]["by_id"] is None  # a pty has no /dev/serial/by-id link
+        # the probe only pings and reads: nothing was written to the servos
+        assert so101.writes() == [] and koch.writes() == []
+        assert set(so101.stats()["packets"]) == {"ping", "read"}
+
+        text = teleop("devices", *ports, display=None)
+        assert text.returncode == 0, text.stderr
+        lines = {line.split()[0]: line for line in text.stdout.splitlines() if line.startswith("/dev/")}
+        assert "6 STS3215 at ids 1-6" in lines[so101.port] and "so101_leader" in lines[so101.port]
+        assert "6 XL330-M077 at ids 1-6" in lines[koch.port] and "57600 baud" in lines[koch.port] and "koch_leader" in lines[koch.port]
+
+
+@pytest.mark.e2e
+def test_devices_reports_a_port_another_process_holds_and_does_not_ping_it(tmp_path):
+    pytest.importorskip("lerobot.motors.feetech", reason="needs the hardware extra")
+    from tests.servo_emulator import FeetechEmulator
+
+    with FeetechEmulator.start(tmp_path) as arm:
+        fd = os.open(arm.port, os.O_RDWR | os.O_NOCTTY)  # as a running LeRobot session would
+        try:
+            result = teleop("devices", "--json", "--port", arm.port, display=None)
+        finally:
+            os.close(fd)
+        assert result.returncode == 0, result.stderr
+        row = next(r for r in json.loads(result.stdout)["serial"] if r["port"] == arm.port)
+        assert row["servos"] == [] and row["problem"].startswith("busy: in use by") and str(os.getpid()) in row["problem"]
+        assert arm.stats()["packets"] == {}
+
+
+@pytest.mark.e2e
+def test_devices_without_lerobot_lists_ports_and_says_in_one_line_what_probing_needs(tmp_path):
+    """LeRobot made unimportable in the child (as if the hardware extra were not installed)."""
+    from tests.servo_emulator import FeetechEmulator
+
+    with FeetechEmulator.start(tmp_path) as arm:
+        code = ("import sys; sys.modules['lerobot'] = None; from teleop.cli.entry import main; "
+                f"sys.exit(main(['devices', '--port', {arm.port!r}] + sys.argv[1:]))")
+        for extra in ([], ["--json"]):
+            result = subprocess.run([sys.executable, "-c", code, *extra], capture_output=True, text=True, timeout=120,
+                                    env=env_for(None), cwd=ROOT)
+            assert result.returncode == 0, result.stderr
+            if extra:
+                out = json.loads(result.stdout)
+                assert "pip install 'mujoco-teleop[hardware]'" in out["serial_note"]
+                row = next(r for r in out["serial"] if r["port"] == arm.port)
+                assert row["servos"] == [] and "not installed" in row["problem"]
+            else:
+                hints = [line for line in result.stdout.splitlines() if "mujoco-teleop[hardware]" in line]
+                assert len(hints) == 1, result.stdout
+                assert any(line.startswith(arm.port) for line in result.stdout.splitlines())
+        assert arm.stats()["packets"] == {}
+
+
+@pytest.mark.e2e
+def test_devices_with_a_port_that_does_not_exist_is_a_one_line_error(tmp_path):
+    result = teleop("devices", "--port", str(tmp_path / "ttyUSB9"), display=None)
+    assert_one_line_error(result, "--port", "no such device")
+
+
+def test_serial_port_lines_and_arm_types_from_what_answered():
+    from devices.serial_ports import FoundServo, SerialPort, fits
+
+    koch_follower = [FoundServo(i, "xl430-w250" if i < 3 else "xl330-m288", 0, "dynamixel", 1_000_000) for i in range(1, 7)]
+    assert fits(koch_follower) == ["koch_follower"]
+    assert fits(koch_follower[:5]) == []  # the gripper missing: not a whole arm
+    assert fits([FoundServo(i, "sts3215", 777, "dynamixel", 57_600) for i in range(1, 7)]) == []  # wrong protocol
+    port = SerialPort("/dev/ttyACM0", probed=True, servos=koch_follower[:2] + koch_follower[3:])
+    assert port.summary().startswith("2 XL430-W250, 3 XL330-M288 at ids 1-2, 4-6 (dynamixel, 1000000 baud)")
+    assert SerialPort("/dev/ttyACM1", probed=True).summary().startswith("no servo answered")

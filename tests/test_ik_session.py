@@ -133,6 +133,10 @@ def test_success_is_judged_once_a_tick(scene):
     judge = task.success
     calls: list[float] = []
     task.success = lambda model, data: (calls.append(data.time), judge(model, data))[1]
+    observe = c._observe  # the step's own judge of a task with a `hold`, bound once (None without one)
+    if observe is not None:
+        c._observe = lambda: (calls.append(c.data.time), observe())[1]
+    assert (observe is not None) == (task.hold > 0)
     for tick in range(1, 4):
         before = len(calls)
         c.step([Command(translation=np.array([0.0, 0.0, 0.002]))])

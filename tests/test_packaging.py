@@ -48,3 +48,55 @@ def test_the_wheel_holds_every_file_of_the_packages(tmp_path):
     assert not missing, "not in the wheel (add them to [tool.setuptools.package-data]):\n" + "\n".join(missing)
     assert "teleop/web/phone.html" in names and "scenes/robots/panda.xml" in names  # the two that went missing once
     assert not any(n.startswith(("tests/", "bench/")) for n in names)  # they stay in the checkout
+
+
+def _declared_distributions() -> set[str]:
+    """Every distribution pyproject.toml names: the core dependencies and every extra's (normalised names)."""
+    import re
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    specs = list(project["dependencies"]) + [d for extra in project["optional-dependencies"].values() for d in extra]
+    return {re.split(r"[\s\[<>=!~;]", spec, maxsplit=1)[0].lower().replace("_", "-") for spec in specs}
+
+
+@pytest.mark.unit
+def test_every_third_party_module_the_code_imports_is_declared():
+    """A module the product code imports by name (at any level) comes from a distribution pyproject.toml declares:
+    a dependency that only arrives with another package (websockets with viser) breaks when that one changes."""
+    import ast
+    import importlib.metadata
+    import sys
+
+    ours = {"teleop", "devices", "recorder", "replay", "scenes"}
+    providers = importlib.metadata.packages_distributions()
+    declared = _declared_distributions()
+    # distributions that come with a declared one, by design, imported where the code works with that one's data:
+    # LeRobot's dataset parts (its parquet and its video decoder), pynput's X11 client, mujoco's GL binding
+    through = {"lerobot": {"torch", "pyarrow", "pandas", "torchcodec", "feetech-servo-sdk", "dynamixel-sdk", "pyserial"},
+               "pynput": {"python-xlib"}, "mujoco": {"pyopengl"}}
+    allowed = declared | {d for extra in through.values() for d in extra}
+    missing = {}
+    for package in sorted(ours):
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [node.module]
+                else:
+                    continue
+                for name in names:
+                    top = name.split(".")[0]
+                    if top in ours or top in sys.stdlib_module_names or top == "__future__":
+                        continue
+                    dists = {d.lower().replace("_", "-") for d in providers.get(top, [])}
+                    if dists and not dists & allowed:
+                        missing.setdefault(top, set()).add(str(path.relative_to(ROOT)))
+    assert not missing, f"imported but not declared in pyproject.toml: {missing}"
+
+
+@pytest.mark.unit
+def test_the_declared_check_sees_websockets_msgspec_and_zstandard():
+    declared = _declared_distributions()
+    assert {"websockets", "msgspec", "zstandard", "viser"} <= declared

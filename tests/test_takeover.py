@@ -194,7 +194,10 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
             page.get_by_text("Driving: policy").first.wait_for(timeout=10000)
             page.get_by_text("Inference:").first.wait_for(timeout=10000)
             headless.click_button(page, "Record")
-            server.wait_for(lambda s: s["recording"] and s["episode_steps"] > 10, what="recording under the policy")
+            # Record starts the episode from the seed's initial state (the arm home) and the policy from its start:
+            # it lifts the target again, and holds it
+            server.wait_for(lambda s: s["recording"] and s["episode_steps"] > 10 and s["target_pos"][0][2] > home_z + RISE_M - 0.01,
+                            what="recording under the policy")
 
             before = np.array(server.status()["target_pos"][0])
             headless.drag_gizmo_axis(page, before, server.status()["target_quat"][0], axis=0, pixels=80)

@@ -124,6 +124,31 @@ def test_record_drag_save_replays_exactly(page, server, record_dir):
     page.get_by_role("button", name="Record", exact=True).wait_for(timeout=5000)
 
 
+def test_save_moves_to_the_next_seed_with_the_arm_home(page, server, record_dir):
+    """Issue 49, item 1: the episode starts from its seed's initial state, Save moves to the next seed (the
+    cube placed anew, the arm home), the panel says so, and the file records the seed it started from."""
+    import teleop
+    from replay.episode import load_episode
+
+    drag_x(page, server)  # the arm away from home before recording
+    seed = server.status()["seed"]
+    headless.click_button(page, "Record")
+    started = server.wait_for(lambda s: s["recording"], what="recording to start")
+    home = teleop.Session("lift", "panda", seed=seed).controller.target_pose()[0]
+    assert started["seed"] == seed and np.allclose(started["target_pos"][0], home, atol=1e-6)  # Record put it home
+    drag_x(page, server, pixels=-60)
+    server.wait_for(lambda s: s["episode_steps"] > 20, what="some recorded steps")
+    saved = server.status()["episodes_saved"]
+    headless.click_button(page, "Save")
+    after = server.wait_for(lambda s: s["episodes_saved"] == saved + 1 and not s["recording"], what="the save")
+    assert after["seed"] == seed + 1 and after["fresh_episodes"] is True
+    nxt = teleop.Session("lift", "panda", seed=seed + 1).controller
+    assert np.allclose(after["target_pos"][0], nxt.target_pose()[0], atol=1e-6)  # the arm's target home
+    assert np.allclose(after["objects"]["cube"][:2], nxt.data.qpos[9:11], atol=2e-3)  # the cube where seed+1 puts it
+    page.get_by_text(f"Next episode: seed {seed + 1}, from its initial state").first.wait_for(timeout=10_000)
+    assert load_episode(Path(after["saved_files"][-1])).meta.seed == seed
+
+
 def test_discard_leaves_no_episode(page, server, record_dir):
     files_before = set(episode_files(record_dir))
     discarded = server.status()["episodes_discarded"]

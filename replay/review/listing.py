@@ -35,6 +35,7 @@ CACHE_DIR = ".teleop-review"
 ROW_VERSION = 1
 THUMB_SIZE = (96, 72)  # px
 _lock = threading.Lock()  # one render at a time: on a 2-core machine two would only take turns
+videos_rendered = 0  # review videos rendered by this process (a cached one is not rendered again)
 
 
 def wait_for_renders(timeout_s: float = 60.0) -> bool:
@@ -226,13 +227,22 @@ def video(path: str | Path, cameras: Sequence[str] = (), size: tuple[int, int] =
     out = _cache_file(path, ".mp4")
     key = json.dumps([file_key(path), list(cameras), list(size)]).encode()
     keyfile = out.with_name(out.name + ".key")
-    try:
-        if out.is_file() and keyfile.read_bytes() == key:
-            return out
-    except OSError:
-        pass
+    if _cached(out, keyfile, key):  # the usual case: no lock to wait on
+        return out
     out.parent.mkdir(exist_ok=True)
     with _lock:
+        if _cached(out, keyfile, key):  # another request rendered it while this one waited for the lock
+            return out
+        global videos_rendered
+        videos_rendered += 1
         write_episodes([load_episode(path)], out, VideoOptions(cameras=tuple(cameras), size=size))
-    store(keyfile, key)
+        store(keyfile, key)
     return out
+
+
+def _cached(out: Path, keyfile: Path, key: bytes) -> bool:
+    """Whether `out` is there and was made from `key` (what its key file says)."""
+    try:
+        return out.is_file() and keyfile.read_bytes() == key
+    except OSError:
+        return False

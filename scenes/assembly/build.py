@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,6 +69,14 @@ class Scene:
         if self.task.hold > 0:
             return bool(self.task.success(self.model, data))
         return None
+
+    def observer(self, data: mujoco.MjData) -> Callable[[], bool] | None:
+        """`observe(data)` bound once, for a controller's every tick: None when the task has no `hold`
+        (nothing to time), else a call that judges and times it (cheaper than `observe`: nothing looked up)."""
+        timer = getattr(self.task, "timer", None)
+        if timer is not None:
+            return timer(self.model, data)
+        return (lambda: bool(self.task.success(self.model, data))) if self.task.hold > 0 else None
 
     @property
     def instruction(self) -> str:

@@ -16,7 +16,6 @@ store so that replay, re-judging and generation need nothing else
 
 from __future__ import annotations
 
-import math
 import tomllib
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -195,7 +194,7 @@ class FileTask(Task):
             raise TaskFileError(f"{self.where}: the model holds no task units; pass the robot's layout units")
         return Judge(self.expr, model, units, self.aliases, tuple(o.name for o in self.objects))  # type: ignore[arg-type]
 
-    def success(self, model: mujoco.MjModel, data: mujoco.MjData) -> bool:
+    def _judge_for(self, model: mujoco.MjModel) -> Callable[[mujoco.MjData], bool]:
         entry = self._judges.get(id(model))
         if entry is None or entry[0] is not model:
             try:
@@ -203,16 +202,35 @@ class FileTask(Task):
             except JudgeError as exc:
                 raise TaskFileError(f"{self.where}: {exc}") from None
             self._judges = {id(model): entry}
-        ok = entry[1](data)
+        return entry[1]
+
+    def success(self, model: mujoco.MjModel, data: mujoco.MjData) -> bool:
+        ok = self._judge_for(model)(data)
         if self.hold <= 0:
             return ok
-        t = float(data.time)
-        last, since = self._held.get(id(data), (-math.inf, None))
-        if t < last:
-            since = None  # the data was reset
-        since = (since if since is not None else t) if ok else None
-        self._held[id(data)] = (t, since)
-        return bool(ok and t - since >= self.hold - 1e-9)  # type: ignore[operator]
+        return self._timed(id(data), data.time, ok)
+
+    def _timed(self, key: int, t: float, ok: bool) -> bool:
+        """Success with its hold: `ok` now, and since at least `hold` s of sim time (per MjData, `key`)."""
+        if not ok:
+            self._held[key] = (t, None)
+            return False
+        held = self._held.get(key)
+        since = held[1] if held is not None and t >= held[0] else None  # t < last: the data was reset
+        if since is None:
+            since = t
+        self._held[key] = (t, since)
+        return t - since >= self.hold - 1e-9
+
+    def timer(self, model: mujoco.MjModel, data: mujoco.MjData) -> Callable[[], bool] | None:
+        """For a task with a `hold`: `success(model, data)` as one call with everything bound, for the control
+        tick, which judges it every tick to time the hold (the same state as `success`); None without a hold."""
+        if self.hold <= 0:
+            return None
+        judge = self._judge_for(model)
+        test = judge.bound(data) if isinstance(judge, Judge) else (lambda: judge(data))
+        timed, key = self._timed, id(data)
+        return lambda: timed(key, data.time, test())
 
     # -- checking ----------------------------------------------------------------------------------------
     def _check(self) -> None:

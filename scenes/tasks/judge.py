@@ -10,7 +10,7 @@ body's own frame, so a recording's model alone is enough to judge it again.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import mujoco
 import numpy as np
@@ -43,6 +43,7 @@ class Judge:
         self._robot = {b for b in range(1, model.nbody) if b not in objects}
         self._cache: dict[tuple, object] = {}
         self._check(expr)
+        self._call = self._compile(expr)
 
     # -- names -----------------------------------------------------------------------
     def _ref(self, name: str) -> tuple[int, int]:
@@ -89,7 +90,9 @@ class Judge:
     def _pos(self, data: mujoco.MjData, name: str, initial: bool = False) -> np.ndarray:
         kind, i = self._ref(name)
         d = self._data0 if initial else data
-        return {mujoco.mjtObj.mjOBJ_BODY: d.xpos, mujoco.mjtObj.mjOBJ_SITE: d.site_xpos, mujoco.mjtObj.mjOBJ_GEOM: d.geom_xpos}[kind][i]
+        if kind == mujoco.mjtObj.mjOBJ_BODY:
+            return d.xpos[i]
+        return d.site_xpos[i] if kind == mujoco.mjtObj.mjOBJ_SITE else d.geom_xpos[i]
 
     def _frame(self, data: mujoco.MjData, name: str) -> tuple[np.ndarray, np.ndarray]:
         kind, i = self._ref(name)
@@ -127,19 +130,71 @@ class Judge:
 
     # -- evaluation ------------------------------------------------------------------
     def __call__(self, data: mujoco.MjData) -> bool:
-        return self._eval(self.expr, data)
+        return self._call(data)
 
-    def _eval(self, node: Node, data: mujoco.MjData) -> bool:
+    def bound(self, data: mujoco.MjData) -> Callable[[], bool]:
+        """The test on `data` alone, with its arrays looked up once (an MjData's arrays keep their memory):
+        for the control tick, which judges a task with a `hold` every tick."""
+        return self._compile_bound(self.expr, data)
+
+    def _compile_bound(self, node: Node, data: mujoco.MjData) -> Callable[[], bool]:
+        if isinstance(node, Pred) and node.name == "lifted":
+            height, floor = self._lifted_parts(node, data)
+            return lambda: bool(height[2] > floor)
         if isinstance(node, Pred):
-            return bool(getattr(self, f"_p_{node.name}")(data, *node.args))
+            fn, args = getattr(self, f"_p_{node.name}"), tuple(node.args)
+            return lambda: bool(fn(data, *args))
         if isinstance(node, Not):
-            return not self._eval(node.arg, data)
+            inner = self._compile_bound(node.arg, data)
+            return lambda: not inner()
+        parts = [self._compile_bound(a, data) for a in sorted(node.args, key=_cost)]
+        if len(parts) == 1:
+            return parts[0]
         if isinstance(node, And):
-            return all(self._eval(a, data) for a in node.args)
-        return any(self._eval(a, data) for a in node.args)
+            return lambda: all(part() for part in parts)
+        return lambda: any(part() for part in parts)
+
+    def _lifted_parts(self, node: Pred, data: mujoco.MjData) -> tuple[np.ndarray, float]:
+        """(the object's world position: a view into `data`, the height (m) it must pass)."""
+        a, h = node.args
+        floor = float(self._pos(self._data0, str(a), initial=True)[2] + self.units.length(h))
+        return self._pos(data, str(a)), floor
+
+    def _compile(self, node: Node) -> Callable[[mujoco.MjData], bool]:
+        """The expression as nested closures, made once. Judged every control tick (a task with a `hold`),
+        so the operands of `and` / `or` are tried cheapest first: the predicates have no side effects, so
+        the answer is the same, and `grasped(cube) and lifted(cube, 0.05)` costs a height comparison on
+        every tick the cube is on the table instead of a pass over the contacts (~40 us a tick)."""
+        if isinstance(node, Pred):
+            if node.name == "lifted":  # the commonest test, made a single comparison
+                a, h = node.args
+                kind, i = self._ref(str(a))
+                floor = float(self._pos(self._data0, str(a), initial=True)[2] + self.units.length(h))
+                field = {mujoco.mjtObj.mjOBJ_BODY: "xpos", mujoco.mjtObj.mjOBJ_SITE: "site_xpos"}.get(kind, "geom_xpos")
+                return lambda data: bool(getattr(data, field)[i, 2] > floor)
+            fn, args = getattr(self, f"_p_{node.name}"), tuple(node.args)
+            return lambda data: bool(fn(data, *args))
+        if isinstance(node, Not):
+            inner = self._compile(node.arg)
+            return lambda data: not inner(data)
+        parts = [self._compile(a) for a in sorted(node.args, key=_cost)]
+        if len(parts) == 1:
+            return parts[0]
+        if len(parts) == 2:
+            first, second = parts
+            if isinstance(node, And):
+                return lambda data: first(data) and second(data)
+            return lambda data: first(data) or second(data)
+        if isinstance(node, And):
+            return lambda data: all(part(data) for part in parts)
+        return lambda data: any(part(data) for part in parts)
 
     def _p_lifted(self, data, a, h) -> bool:
-        return bool(self._pos(data, a)[2] > self._pos(data, a, initial=True)[2] + self.units.length(h))
+        key = ("lifted", a, h)
+        floor = self._cache.get(key)
+        if floor is None:  # the height to pass: the initial height plus h (m), found once
+            floor = self._cache[key] = float(self._pos(data, a, initial=True)[2] + self.units.length(h))
+        return bool(self._pos(data, a)[2] > floor)
 
     def _p_near(self, data, a, b, d) -> bool:
         return bool(np.linalg.norm(self._pos(data, a) - self._pos(data, b)) < self.units.length(d))
@@ -247,3 +302,17 @@ class Judge:
 
 def _kinds(pred: Pred) -> tuple[str, ...]:
     return PREDICATES[pred.name]
+
+
+# Relative cost of judging each predicate: a position or joint read first, boxes next, contacts and rays last.
+_PREDICATE_COST = {"lifted": 1, "near": 1, "upright": 1, "open": 1, "closed": 1, "at_rest": 2,
+                   "inside": 3, "in_region": 3, "grasped": 5, "on": 8}
+
+
+def _cost(node: Node) -> int:
+    """How dear a sub-expression is to judge (the sum over its predicates; unknown ones are dear)."""
+    if isinstance(node, Pred):
+        return _PREDICATE_COST.get(node.name, 10)
+    if isinstance(node, Not):
+        return _cost(node.arg)
+    return sum(_cost(a) for a in node.args)

@@ -3,7 +3,8 @@
 Everything lives under the campaign's `out/` folder, so a restart continues where
 the last run stopped:
 - `out/<task>/episode_*.mcap|hdf5`: the episodes; counts are read from them
-  (successful episodes per task and per operator), never kept on the side;
+  (successful episodes per task and per operator, and when each was recorded: the
+  admin page's episodes per hour), never kept on the side;
 - `out/.campaign/seeds-<task>.txt`: every seed handed out for the task, one a line,
   appended under an exclusive lock by whichever session process asks, so seeds
   never repeat within a task across operators and restarts;
@@ -20,8 +21,9 @@ import json
 import os
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 from recorder.writer import next_episode_index as next_index_in
@@ -79,14 +81,26 @@ class TaskCount:
     successes: int = 0
     by_operator: dict[str, list[int]] = field(default_factory=dict)  # operator -> [episodes, successes]
     by_session: dict[str, list[int]] = field(default_factory=dict)  # session id -> [episodes, successes]
+    # (when it started: Unix time, s; its operator or None) of each successful episode, the admin page's plot
+    success_times: list[tuple[float, str | None]] = field(default_factory=list)
 
 
-Facts = tuple[int, bool, str | None, str | None]  # seed, success, operator, session
+Facts = tuple[int, bool, str | None, str | None, float]  # seed, success, operator, session, start (Unix time, s)
 _facts_cache: dict[str, tuple[tuple[int, int], Facts]] = {}
 
 
+def started_at(start_time: str, fallback: float) -> float:
+    """An episode's recorded start (EpisodeMeta.start_time, ISO 8601) as Unix time in seconds; `fallback` (the
+    file's modification time) for a file that has none or an unreadable one."""
+    try:
+        stamp = datetime.fromisoformat(start_time)
+    except (TypeError, ValueError):
+        return fallback
+    return stamp.timestamp() if stamp.tzinfo is not None else fallback  # no zone: not ours, do not guess one
+
+
 def _facts(path: Path, settle: bool = True) -> Facts | None:
-    """(seed, success, operator, session) of one episode file, cached while its size and time stay.
+    """(seed, success, operator, session, start) of one episode file, cached while its size and time stay.
 
     A file written to in the last SETTLE_S is not read (None): it is an episode being recorded, whose
     outcome is not in it yet, and reading every growing file at every count would cost each session
@@ -106,7 +120,7 @@ def _facts(path: Path, settle: bool = True) -> Facts | None:
         meta = load_episode(path).meta
     except (EpisodeError, OSError):  # being written (no metadata yet) or broken: not counted
         return None
-    facts = (meta.seed, meta.success, meta.operator, meta.session)
+    facts = (meta.seed, meta.success, meta.operator, meta.session, started_at(meta.start_time, st.st_mtime))
     _facts_cache[str(path)] = (stamp, facts)
     return facts
 
@@ -120,15 +134,50 @@ def _episode_facts(folder: Path, settle: bool = True) -> list[Facts]:
 def count_task(out: Path, task: str, settle: bool = True) -> TaskCount:
     """What out/<task>/ holds now (`settle=False`: files written a moment ago too)."""
     count = TaskCount()
-    for _, success, operator, session in _episode_facts(Path(out) / task, settle):
+    for _, success, operator, session, start in _episode_facts(Path(out) / task, settle):
         count.episodes += 1
         count.successes += int(success)
+        if success:
+            count.success_times.append((start, operator))
         for key, table in ((operator, count.by_operator), (session, count.by_session)):
             if key:
                 mine = table.setdefault(key, [0, 0])
                 mine[0] += 1
                 mine[1] += int(success)
     return count
+
+
+HOUR_S = 3600.0
+MAX_HOURS = 24 * 14  # the plot's span at most: the last two weeks
+
+
+def hourly_successes(counts: Mapping[str, TaskCount], now: float | None = None, max_hours: int = MAX_HOURS) -> dict:
+    """Successful episodes per hour, from each one's recorded start: for the campaign, per operator and per task.
+
+    {"start": Unix time (s) of the first hour, "hour_s": 3600, "now": Unix time, "campaign": [n per hour],
+    "operators": {name: [n per hour]}, "tasks": {name: [n per hour]}}; hours run from the one of the first
+    successful episode (at most `max_hours` back) to the current one, on whole UTC hours. Episodes without an
+    operator count for the campaign and their task only.
+    """
+    now = time.time() if now is None else float(now)
+    last = int(now // HOUR_S)
+    times = [(t, op, task) for task, count in counts.items() for t, op in count.success_times]
+    first = max(min((int(t // HOUR_S) for t, _, _ in times), default=last), last - max_hours + 1)
+    first = min(first, last)
+    n = last - first + 1
+    campaign = [0] * n
+    operators: dict[str, list[int]] = {}
+    tasks: dict[str, list[int]] = {task: [0] * n for task in counts}
+    for t, operator, task in times:
+        i = int(t // HOUR_S) - first
+        if not 0 <= i < n:  # older than the span, or a clock ahead of this machine's
+            continue
+        campaign[i] += 1
+        tasks[task][i] += 1
+        if operator:
+            operators.setdefault(operator, [0] * n)[i] += 1
+    return {"start": first * HOUR_S, "hour_s": HOUR_S, "now": now, "campaign": campaign,
+            "operators": dict(sorted(operators.items())), "tasks": tasks}
 
 
 # -- invite tokens -------------------------------------------------------------------

@@ -9,7 +9,9 @@
     POST /api/pause?token=A, /api/resume?token=A    stop and restart joining
 
 Every request brings its token in the query (the pages pass on the one in their own
-URL). Anything wrong is a 4xx with {"error": one line}: a missing or wrong token (403),
+URL); after 10 wrong tokens in a second from one address, its requests carrying a token get
+429 for 5 s, unchecked (teleop.web.access.TokenThrottle). The stylesheet (/static/teleop.css)
+needs no token. Anything wrong is a 4xx with {"error": one line}: a missing or wrong token (403),
 malformed JSON or a bad name (400), a body over 4 kB (413), a name already in a live
 session (409), joins faster than JOIN_RATE a second (429), joining paused (503), the
 campaign complete (410). Names are checked (no markup) and escaped wherever shown.
@@ -18,34 +20,26 @@ campaign complete (410). Names are checked (no markup) and escaped wherever show
 from __future__ import annotations
 
 import hmac
-import json
 import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, quote, urlsplit
 
 from scenes.errors import TeleopError, first_line
 from teleop.campaign.file import Campaign, CampaignTask, check_operator_name
-from teleop.campaign.ledger import count_task, invited, load_invites
+from teleop.campaign.ledger import count_task, hourly_successes, invited, load_invites
 from teleop.campaign.sessions import LiveSession, Sessions
+from teleop.web.access import Gate
 from teleop.web.input_channel import PATH as INPUT_PATH
+from teleop.web.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused, TokenRefused
 
 MAX_BODY = 4096  # bytes of a request body
 JOIN_RATE, JOIN_BURST = 20.0, 40.0  # joins a second, and the burst allowed, over all clients
 QUEUE_STALE_S = 30.0  # a queued operator who has not asked again for this long loses the place
 PAGES = Path(__file__).with_name("pages")
-
-
-class Refused(Exception):
-    """A request answered with a 4xx/5xx and a one-line reason."""
-
-    def __init__(self, status: HTTPStatus, reason: str) -> None:
-        super().__init__(reason)
-        self.status = status
 
 
 @dataclass
@@ -85,6 +79,7 @@ class Lobby:
         self.paused = False
         self.queue: OrderedDict[str, float] = OrderedDict()  # operator -> when they last asked
         self.bucket = Bucket(JOIN_RATE, JOIN_BURST)
+        self.gate = Gate(admin_token, 0)  # the lobby checks its tokens itself; the gate's throttle counts wrong ones
         self._lock = threading.Lock()  # joins decide one at a time (slots, names, the queue)
         for task in campaign.tasks:  # no session writes yet: every file on disk is whole, counted at once after a restart
             count_task(campaign.out, task.name, settle=False)
@@ -125,7 +120,7 @@ class Lobby:
         """A join request: a session (200), a place in the queue (202), or Refused."""
         who = self.joiner(token)
         if who is None:
-            raise Refused(HTTPStatus.FORBIDDEN, "this join link's token is not valid for this campaign")
+            raise TokenRefused("this join link's token is not valid for this campaign")
         if not self.bucket.take():
             raise Refused(HTTPStatus.TOO_MANY_REQUESTS, "too many join requests; try again in a second")
         raw = body.get("name", who) if who == "" else body.get("name") or who
@@ -135,10 +130,12 @@ class Lobby:
             raise Refused(HTTPStatus.BAD_REQUEST, f"name: {exc}") from None
         if who and name != who:
             raise Refused(HTTPStatus.FORBIDDEN, "this invite is for another operator")
+        self.sessions.live()  # each session's liveness asked now, outside the lock (a Ray node may be slow)
         with self._lock:
+            live = self.sessions.known_live()  # no blocking call under the lock: joins decide one at a time
             if self.paused:
                 raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, "joining is paused by the campaign's admin; try later")
-            if any(s.spec.operator == name for s in self.sessions.live()):
+            if any(s.spec.operator == name for s in live):
                 raise Refused(HTTPStatus.CONFLICT, f"{name!r} is already in a live session (one session per operator)")
             task = self.next_task()
             if task is None:
@@ -147,7 +144,7 @@ class Lobby:
             now = time.monotonic()
             for stale in [n for n, seen in self.queue.items() if now - seen > QUEUE_STALE_S]:
                 del self.queue[stale]
-            free = self.campaign.max_sessions - len(self.sessions.live())
+            free = self.campaign.max_sessions - len(live)
             ahead = list(self.queue).index(name) if name in self.queue else len(self.queue)
             if ahead >= free:
                 self.queue[name] = now
@@ -157,10 +154,7 @@ class Lobby:
                 session = self.sessions.start(name, task, self.wanted_total)
             except TeleopError as exc:
                 raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, f"the session could not start: {first_line(exc)}") from None
-        if not self.sessions.wait_ready(session) and "already in use" in session.last_log_line():
-            with self._lock:  # another program took its free port in the moment between: once more, on another
-                session = self.sessions.start(name, task, self.wanted_total)
-            self.sessions.wait_ready(session)
+        self.sessions.wait_ready(session)
         if not session.ready():
             why = session.last_log_line() or "it did not start"
             raise Refused(HTTPStatus.SERVICE_UNAVAILABLE, f"the session could not start: {why}")
@@ -168,7 +162,7 @@ class Lobby:
 
     def joined(self, session: LiveSession, task: CampaignTask, host: str) -> dict:
         spec = session.spec
-        base = f"{session.url_host(host)}:{spec.port}"
+        base = f"{session.url_host(host)}:{session.port}"
         token = quote(spec.token, safe="")
         return {"operator": spec.operator, "task": task.name, "instruction": task.instruction,
                 "url": f"http://{base}/?token={token}", "token": spec.token,
@@ -179,21 +173,23 @@ class Lobby:
         counts = self.counts()
         sessions = []
         for s in list(self.sessions.all):
-            st = s.status() if s.live else {}
+            live = s.live
+            st = s.status() if live else None
             mine = [sum(c.by_session.get(s.id, [0, 0])[k] for c in counts.values()) for k in (0, 1)]
-            task = Path(st["record_dir"]).name if st.get("record_dir") else s.spec.task  # it may have moved on
+            task = Path(st.record_dir).name if st is not None and st.record_dir else s.spec.task  # it may have moved on
             sessions.append({
                 "id": s.id, "operator": s.spec.operator, "task": task,
-                "state": "live" if s.live else "ended", "pid": s.pid, "node": s.node,
-                "realtime_factor": st.get("realtime_factor"), "latency_ms": st.get("latency_ms"),
-                "recording": st.get("recording"), "episodes": mine[0], "successes": mine[1],
-                "minutes": round(s.minutes, 2), "url": f"http://{s.url_host(host)}:{s.spec.port}/",
+                "state": "live" if live else "ended", "pid": s.pid, "node": s.node,
+                "realtime_factor": st.realtime_factor if st else None, "latency_ms": st.latency_ms if st else None,
+                "recording": st.recording if st else None, "episodes": mine[0], "successes": mine[1],
+                "minutes": round(s.minutes, 2), "url": f"http://{s.url_host(host)}:{s.port}/",
             })
         tasks = [{"task": t.name, "wanted": t.episodes, "done": counts[t.name].successes,
                   "episodes": counts[t.name].episodes} for t in self.campaign.tasks]
         return {"campaign": self.campaign.name, "sessions": sessions, "tasks": tasks, "queue": list(self.queue),
                 "paused": self.paused, "wanted": self.wanted_total,
-                "done": sum(min(t["done"], t["wanted"]) for t in tasks), "max_sessions": self.campaign.max_sessions}
+                "done": sum(min(t["done"], t["wanted"]) for t in tasks), "max_sessions": self.campaign.max_sessions,
+                "timeline": hourly_successes(counts)}  # successful episodes per hour: the admin page's plot
 
     def end(self, session_id: object) -> dict:
         session = self.sessions.find(session_id) if isinstance(session_id, str) else None
@@ -203,33 +199,11 @@ class Lobby:
         return {"ended": session.id}
 
 
-def read_json_body(handler: BaseHTTPRequestHandler) -> dict:
-    """The request's JSON object (an empty body is {}); Refused when too big or not a JSON object."""
-    try:
-        length = int(handler.headers.get("Content-Length") or 0)
-    except ValueError:
-        raise Refused(HTTPStatus.BAD_REQUEST, "bad Content-Length") from None
-    if length > MAX_BODY or length < 0:
-        raise Refused(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"the request body is over {MAX_BODY} bytes")
-    raw = handler.rfile.read(length) if length else b""
-    if not raw.strip():
-        return {}
-    try:
-        body = json.loads(raw)
-    except (ValueError, UnicodeDecodeError):
-        raise Refused(HTTPStatus.BAD_REQUEST, "the request body is not valid JSON") from None
-    if not isinstance(body, dict):
-        raise Refused(HTTPStatus.BAD_REQUEST, "the request body must be a JSON object")
-    return body
-
-
-def make_handler(lobby: Lobby) -> type[BaseHTTPRequestHandler]:
-    class Handler(BaseHTTPRequestHandler):
+def make_handler(lobby: Lobby) -> type[GatedHandler]:
+    class Handler(GatedHandler):
         server_version = "teleop-campaign"
-        protocol_version = "HTTP/1.1"
-
-        def log_message(self, format: str, *args) -> None:  # noqa: A002 - quiet: the admin page shows what matters
-            pass
+        gate = lobby.gate
+        max_body = MAX_BODY
 
         def _token(self) -> str | None:
             values = parse_qs(urlsplit(self.path).query).get("token")
@@ -241,50 +215,42 @@ def make_handler(lobby: Lobby) -> type[BaseHTTPRequestHandler]:
             name = urlsplit(f"//{host}").hostname or lobby.host
             return f"[{name}]" if ":" in name else name
 
-        def _send(self, status: HTTPStatus, body: bytes, kind: str) -> None:
-            self.send_response(status)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.send_header("Referrer-Policy", "no-referrer")
-            self.send_header("X-Content-Type-Options", "nosniff")
-            self.end_headers()
-            self.wfile.write(body)
-
-        def _json(self, status: HTTPStatus, obj: dict) -> None:
-            self._send(status, (json.dumps(obj) + "\n").encode(), "application/json")
-
         def _dispatch(self, method: str) -> None:
             path = urlsplit(self.path).path
-            try:
-                status, obj = self._route(method, path)
-            except Refused as exc:
-                status, obj = exc.status, {"error": str(exc)}
-                self.close_connection = True  # a body left unread must not be taken for the next request
-            if isinstance(obj, bytes):
-                self._send(status, obj, "text/html; charset=utf-8")
-            else:
-                self._json(status, obj)
-
-        def _route(self, method: str, path: str) -> tuple[HTTPStatus, dict | bytes]:
+            if method == "GET" and path == STYLESHEET_PATH:  # nothing secret: no token, never counted
+                self.send_stylesheet()
+                return
             token = self._token()
+            if self.throttled(token is not None):
+                return
+            try:
+                status, obj = self._route(method, path, token)
+            except Refused as exc:
+                self.send_refusal(exc)
+                return
+            if isinstance(obj, bytes):
+                self.send_body(status, obj, "text/html; charset=utf-8")
+            else:
+                self.send_json(obj, status)
+
+        def _route(self, method: str, path: str, token: str | None) -> tuple[HTTPStatus, dict | bytes]:
             if method == "POST" and path == "/api/join":
-                body = read_json_body(self)
+                body = self.read_json()
                 return lobby.join(token, body, self._host())
             if path in ("/join", "/"):
                 if lobby.joiner(token) is None:
-                    raise Refused(HTTPStatus.FORBIDDEN, "this join link's token is not valid for this campaign")
+                    raise TokenRefused("this join link's token is not valid for this campaign")
                 return HTTPStatus.OK, (PAGES / "join.html").read_bytes()
             if not lobby.is_admin(token):
-                raise Refused(HTTPStatus.FORBIDDEN, "this needs the campaign's admin token")
+                raise TokenRefused("this needs the campaign's admin token")
             if method == "GET" and path == "/admin":
                 return HTTPStatus.OK, (PAGES / "admin.html").read_bytes()
             if method == "GET" and path == "/api/status":
                 return HTTPStatus.OK, lobby.status(self._host())
             if method == "POST" and path == "/api/end":
-                return HTTPStatus.OK, lobby.end(read_json_body(self).get("id"))
+                return HTTPStatus.OK, lobby.end(self.read_json().get("id"))
             if method == "POST" and path in ("/api/pause", "/api/resume"):
-                read_json_body(self)
+                self.read_json()
                 lobby.paused = path == "/api/pause"
                 return HTTPStatus.OK, {"paused": lobby.paused}
             raise Refused(HTTPStatus.NOT_FOUND, f"no such page: {path[:100]}")
@@ -298,16 +264,9 @@ def make_handler(lobby: Lobby) -> type[BaseHTTPRequestHandler]:
     return Handler
 
 
-class LobbyServer(ThreadingHTTPServer):
-    """A thread per request, and a listen backlog for a room of operators joining at once (socketserver's
-    default of 5 reset connections when 24 joined in the same second while their sessions started)."""
-
-    request_queue_size = 128
-    daemon_threads = True
-
-
-def start_lobby(lobby: Lobby, port: int) -> ThreadingHTTPServer:
-    """Listen on lobby.host:port and serve in a thread of its own."""
-    server = LobbyServer((lobby.host, port), make_handler(lobby))
+def start_lobby(lobby: Lobby, port: int) -> QuietServer:
+    """Listen on lobby.host:port and serve in a thread of its own (a thread per connection)."""
+    lobby.gate.port = port
+    server = QuietServer((lobby.host, port), make_handler(lobby))
     threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1}, name="campaign-lobby", daemon=True).start()
     return server

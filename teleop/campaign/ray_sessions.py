@@ -1,7 +1,8 @@
 """Sessions on a Ray cluster (`teleop campaign --ray auto|ADDRESS`): one actor per session, one CPU each.
 
 The actor starts the same session process as a local campaign does
-(`python -m teleop.cli.campaign_session`) on its node, on a free port there, and holds its
+(`python -m teleop.cli.campaign_session`) on its node, on a port it binds there (reported in its
+status file on the shared out/), and holds its
 stdin as the lifeline. The lobby stays where it was started and sends each browser to the
 node's host and port. The actors belong to the lobby's Ray driver (nothing detaches), so
 Ray ends them when the lobby ends, however it ends, and each session process then ends with
@@ -22,7 +23,7 @@ from pathlib import Path
 
 from scenes.workers.cluster import ClusterError, connect_ray
 from teleop.campaign.operator_session import SessionSpec
-from teleop.campaign.session_files import SessionFiles, free_port
+from teleop.campaign.session_files import SessionFiles, open_private_log, private_folder
 from teleop.web.net import is_loopback
 
 START_TIMEOUT_S = 60.0  # an actor waits this long for a free CPU on the cluster
@@ -40,9 +41,9 @@ class SessionActor:
         spec = json.loads(spec_json)
         asked = spec["host"]
         spec["host"] = asked if is_loopback(asked) else "0.0.0.0"  # reachable from the operators' machines
-        spec["port"] = free_port(spec["host"])
-        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-        with open(log_path, "w") as log:
+        spec["port"] = 0  # bound by the session itself, reported in its status file (no race for a free port)
+        private_folder(Path(log_path).parent)
+        with open_private_log(Path(log_path)) as log:
             self.proc = subprocess.Popen([sys.executable, "-m", "teleop.cli.campaign_session"], stdin=subprocess.PIPE,
                                          stdout=log, stderr=subprocess.STDOUT, text=True,
                                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -50,7 +51,7 @@ class SessionActor:
         self.proc.stdin.write(json.dumps(spec) + "\n")
         self.proc.stdin.flush()
         node = ray.util.get_node_ip_address()
-        return {"pid": self.proc.pid, "port": spec["port"], "host": spec["host"],
+        return {"pid": self.proc.pid, "host": spec["host"],
                 "node": f"{node} {ray.get_runtime_context().get_node_id()[:8]}",
                 "url_host": None if is_loopback(asked) else node}
 
@@ -111,6 +112,7 @@ class RaySession(SessionFiles):
             running = False
         if not running:
             self.ended_at = time.monotonic()
+            self.known_live = False
         return running
 
     def _call(self, method: str, *args, timeout_s: float = 10.0):
@@ -150,4 +152,4 @@ class RayLauncher:
             self.ray.kill(actor)
             raise ClusterError(f"no Ray node took the session in {START_TIMEOUT_S:.0f} s "
                                f"({type(exc).__name__}); the cluster may have no free CPU") from None
-        return RaySession(replace(spec, port=int(info["port"]), host=str(info["host"])), actor, log_path, info, self.ray)
+        return RaySession(replace(spec, host=str(info["host"])), actor, log_path, info, self.ray)

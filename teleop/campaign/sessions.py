@@ -1,7 +1,9 @@
 """The session processes of a campaign: one `python -m teleop.cli.campaign_session` per operator.
 
-Each gets its own loopback-or-lobby host port, its own token and a status file (the
-JSON `teleop serve --status-file` writes: real-time factor, latency, episodes). Its
+Each binds a port of its own on the lobby's host (port 0: the system's pick, reported in its
+status file, so no race for a free port), gets its own token (on its stdin, never in a file or a
+log) and writes a status file (operator_session.SessionStatus: port, real-time factor, latency,
+episodes; mode 0600, like its log). Its
 stdin is a pipe the lobby holds open: closing it ends the session gracefully, and so
 does the lobby's end however it comes (the kernel closes the pipe even after a
 kill -9), so no session outlives its campaign. A session that dies on its own (a
@@ -24,7 +26,7 @@ from pathlib import Path
 from teleop.campaign.file import Campaign, CampaignTask
 from teleop.campaign.ledger import state_dir
 from teleop.campaign.operator_session import SessionSpec
-from teleop.campaign.session_files import SessionFiles, free_port
+from teleop.campaign.session_files import SessionFiles, open_private_log, private_folder
 
 READY_TIMEOUT_S = 180.0  # import + scene compile on a loaded 2-core machine
 STOP_TIMEOUT_S = 30.0  # an episode in progress is saved before a session exits
@@ -59,6 +61,7 @@ class LiveSession(SessionFiles):
             return True
         if self.ended_at is None:
             self.ended_at = time.monotonic()
+        self.known_live = False
         return False
 
     def end(self) -> None:
@@ -99,8 +102,16 @@ class Sessions:
         self.folder = state_dir(campaign.out) / "sessions"
 
     def live(self) -> list:
+        """The sessions running now. Each is asked outside the lock (a Ray session's answer is a call to its
+        node, which a slow node can hold for seconds): no join waits on another node."""
         with self._lock:
-            return [s for s in self.all if s.live]
+            every = list(self.all)
+        return [s for s in every if s.live]
+
+    def known_live(self) -> list:
+        """The sessions live when last asked (see `live`), and those started since: no call, for use under locks."""
+        with self._lock:
+            return [s for s in self.all if s.known_live]
 
     def find(self, session_id: str):
         with self._lock:
@@ -109,13 +120,13 @@ class Sessions:
     def start(self, operator: str, task: CampaignTask, wanted_total: int):
         """Start a session process for `operator` on `task` (returns at once; see `wait_ready`): here,
         or as a Ray actor on one of the cluster's nodes (teleop/campaign/ray_sessions.py)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
+        private_folder(self.folder)  # logs and status files: the owner's alone
         with self._lock:
             self._count += 1
             session_id = f"s{self._count}-{secrets.token_hex(3)}"
         spec = SessionSpec(
             campaign=self.campaign.name, session=session_id, operator=operator, task=task.name, scene=task.scene,
-            robot=task.robot, out=str(self.campaign.out), port=0 if self.ray else free_port(self.host), host=self.host,
+            robot=task.robot, out=str(self.campaign.out), port=0, host=self.host,
             token=secrets.token_urlsafe(18), control_hz=task.control_hz, vary=task.vary, format=task.format,
             status_file=str(self.folder / f"{session_id}.status.json"), minutes=self.campaign.session_minutes,
             wanted=task.episodes, campaign_wanted=wanted_total,
@@ -127,7 +138,7 @@ class Sessions:
             with self._lock:
                 self.all.append(session)
             return session
-        with open(log_path, "w") as log:
+        with open_private_log(log_path) as log:
             proc = subprocess.Popen([sys.executable, "-m", "teleop.cli.campaign_session"], stdin=subprocess.PIPE,
                                     stdout=log, stderr=subprocess.STDOUT, text=True,
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -163,8 +174,7 @@ class Sessions:
 
     def close(self) -> None:
         """End every session (each saves its episode in progress) and wait for them all."""
-        with self._lock:
-            running = [s for s in self.all if s.live]
+        running = self.live()
         for session in running:
             session.end()
         threads = [threading.Thread(target=self.stop, args=(s,)) for s in running]

@@ -19,7 +19,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (rougher figures)")
     p.add_argument("--only", default=None,
-                   help="comma list of benches to run (control, recording, web, export, devices, generate, eval, faults, cameras, grasp, review;"
+                   help="comma list of benches to run (control, recording, web, export, devices, generate, eval, faults, cameras, grasp, "
+                        "review, leader;"
                         " run only when named: e2e, tasks, campaign)")
     p.set_defaults(func=cmd_bench)
 

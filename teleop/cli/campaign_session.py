@@ -2,7 +2,8 @@
 
 `python -m teleop.cli.campaign_session` reads its SessionSpec as one JSON line on
 stdin, then serves the session as `teleop serve` does (the page's inputs only: the
-operator is at another machine) on its own port with its own token, recording into
+operator is at another machine) on a port the system picks (reported in its status file,
+SessionStatus) with its own token, never written to its log, recording into
 out/<task>/ with the campaign's seeds and provenance. It keeps stdin open as its
 lifeline: when the lobby goes away, however it ends (kill -9 included), stdin reaches
 end of file and the session stops as on Ctrl-C (an episode in progress is saved,
@@ -21,7 +22,7 @@ from devices.registry import BROWSER_DEVICES
 from scenes.errors import TeleopError, first_line
 from scenes.vary.variation import Variation, parse_vary
 from teleop.campaign.ledger import next_episode_index, next_seed
-from teleop.campaign.operator_session import CampaignSession, SessionSpec
+from teleop.campaign.operator_session import CampaignSession, SessionSpec, SessionStatus
 from teleop.campaign.progress import Progress
 from teleop.cli.signals import cancel_on_interrupt
 from teleop.control.recording import Recorder
@@ -81,7 +82,8 @@ def run(spec: SessionSpec, stop: threading.Event) -> int:
         return serve(session, devices, host=spec.host, port=spec.port, status_file=Path(spec.status_file),
                      problems=problems, log=lambda line: print(line, flush=True), token=spec.token,
                      page_keyboard=True, stop=stop, headline=progress.line, draw_unwatched=False,
-                     status_period_s=STATUS_PERIOD_S)
+                     status_period_s=STATUS_PERIOD_S, status_form=lambda st: SessionStatus.from_serve(st).to_json(),
+                     print_token=False)  # this process's output is a log file: the lobby hands out the URL
     finally:
         timer.cancel()
         progress.stop()

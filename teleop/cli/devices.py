@@ -15,7 +15,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description="List every input device teleop can see or not see, and why; then the keyboard "
         "bindings and the SpaceMouse setup.",
     )
-    p.add_argument("--json", action="store_true", help='print one JSON object {"devices": [{name, kind, available, reason, ...}]}')
+    p.add_argument("--json", action="store_true", help='print one JSON object {"devices": [{name, kind, available, reason, ...}], '
+                   '"serial": [{port, by_id, servos: [{id, model, ...}], fits, ...}]}')
+    p.add_argument("--port", action="append", default=[], metavar="PATH",
+                   help="also probe this serial device for servos (repeatable); USB serial adapters are probed anyway")
     p.set_defaults(func=run_devices)
 
 
@@ -48,17 +51,46 @@ def help_text() -> str:
     )
 
 
-def run_devices(args: argparse.Namespace) -> int:
-    from devices.discovery import discover
+def serial_text(ports: list, note: str | None) -> str:
+    """The serial-port table of `teleop devices`: each port, its by-id name and what answered on it."""
+    if not ports:
+        lines = ["Serial ports: none (a leader arm's USB adapter shows up as /dev/ttyACM* or /dev/ttyUSB*; name others with --port)"]
+    else:
+        width = max(len("SERIAL PORT"), *(len(p.port) for p in ports))
+        lines = [f"{'SERIAL PORT'.ljust(width)}  SERVOS"]
+        for p in ports:
+            lines.append(f"{p.port.ljust(width)}  {p.summary()}")
+            if p.by_id:
+                lines.append(f"{' ' * width}  ({p.by_id})")
+    if note:
+        lines.append(note)
+    return "\n".join(lines)
 
+
+def run_devices(args: argparse.Namespace) -> int:
+    import os
+
+    from devices.discovery import discover
+    from devices.serial_ports import serial_ports
+    from teleop.errors import UsageError
+
+    for path in args.port:
+        if not os.path.exists(path):
+            raise UsageError(f"--port {path}: no such device")
     rows = discover()
+    ports, note = serial_ports(args.port)
     if args.json:
-        print_json({"devices": [r.to_dict() for r in rows]}, indent=2)
+        out = {"devices": [r.to_dict() for r in rows], "serial": [p.to_dict() for p in ports]}
+        if note:
+            out["serial_note"] = note
+        print_json(out, indent=2)
         return 0
     width = max(len(r.name) for r in rows)
     print(f"{'NAME'.ljust(width)}  {'KIND':10}  {'AVAILABLE':9}  REASON")
     for r in rows:
         print(f"{r.name.ljust(width)}  {r.kind:10}  {'yes' if r.available else 'no':9}  {r.reason}")
+    print()
+    print(serial_text(ports, note))
     print()
     print(help_text())
     return 0

@@ -11,9 +11,10 @@ import numpy as np
 from devices.base import Restartable
 from recorder import RecorderError
 from scenes.errors import TeleopError
+from scenes.workers import shielded
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
-from teleop.cli.session_args import add_session_args, devices_from, session_from
+from teleop.cli.session_args import add_session_args, devices_from, follower_from, session_from
 from teleop.cli.signals import interrupts_ignored
 from teleop.control.loop import run_episode
 
@@ -22,7 +23,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register this module's subcommands."""
     p = sub.add_parser("run", help="run a session headless (scripted or keyboard/SpaceMouse) and print a summary")
     add_session_args(p)
-    p.add_argument("--device", required=True, help="comma list: script:FILE.json, keyboard, spacemouse")
+    p.add_argument("--device", required=True,
+                   help="comma list: script:FILE.json, keyboard, spacemouse, so101_leader:PORT[:id=NAME...] (and "
+                        "so100_leader, koch_leader: docs/leaders.md)")
     p.add_argument("--seconds", type=float, default=None, help="simulated seconds per episode (default: until the script ends)")
     p.add_argument("--episodes", type=int, default=1, help="episodes to run, seeds seed, seed+1, ... (default 1)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
@@ -36,7 +39,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UsageError("--seconds must be positive")
     log = (lambda m: print(m, file=sys.stderr)) if args.json else print
     session = session_from(args)
-    devices, _ = devices_from(args, session.controller.n_arms)
+    follower = follower_from(args, session)  # a real arm mirroring the simulated one (--follower), or None
+    try:
+        devices, _ = devices_from(args, session.controller.n_arms)
+    except BaseException:
+        if follower is not None:
+            follower.close()
+        raise
     scripted = all(d.kind == "script" for d in devices)
     if args.seconds is None and not scripted:
         log("running until Ctrl-C (give --seconds to stop by itself)")
@@ -50,7 +59,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             for d in devices:
                 if isinstance(d, Restartable):
                     d.restart()
-            result = run_episode(session, devices, seconds=args.seconds, realtime=not scripted)  # people drive in real time
+            # people drive in real time, and a real follower moves in it
+            result = run_episode(session, devices, seconds=args.seconds, realtime=not scripted or follower is not None)
             entry = {
                 "seed": result.seed,
                 "steps": result.steps,
@@ -76,6 +86,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         for d in devices:
             d.close()
+        if follower is not None:
+            follower_status = follower.status()  # as it was while the session ran
+            shielded(follower.close)  # stop sending, torque off, however the session ended (a 2nd Ctrl-C waits)
     wall = time.perf_counter() - wall_start
     summary = {
         "scene": args.scene,
@@ -93,6 +106,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         "interrupted": interrupted,
         "devices": [d.name for d in devices],
     }
+    if follower is not None:
+        summary["follower"] = follower_status
     if args.record:
         summary["files"] = [f for e in episodes for f in e["files"]]
         summary["record_dir"] = str(args.record)
@@ -107,6 +122,10 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"in {summary['wall_seconds']:.2f} s, success={summary['success']}, IK failures={summary['ik_failures']}, "
             f"EE tracking error median {err['median']} mm / max {err['max']} mm"
         )
+        if follower is not None:
+            f = summary["follower"]
+            gap = "" if f["max_gap_deg"] is None else f", gap {f['max_gap_deg']} deg"
+            print(f"follower {f['port']}: {f['state']}{gap}; {f['sent']} goals sent, {f['clamped']} clamped to its range")
         for f in summary.get("files", []):
             print(f"recorded {f}")
         for m in session.stats.messages:

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from teleop.cli.access_args import add_access_args
-from teleop.cli.session_args import add_session_args, devices_from, session_from
+from teleop.cli.session_args import add_session_args, devices_from, follower_from, session_from
 from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
 
@@ -26,14 +26,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_session_args(p)
     p.add_argument("--device", default=",".join(DEFAULT_DEVICES),
-                   help=f"comma list: gizmo, keyboard, spacemouse[:N...] (default {','.join(DEFAULT_DEVICES)}; "
-                        "absent ones are listed on the page)")
+                   help=f"comma list: gizmo, keyboard, spacemouse[:N...], so101_leader:PORT[...] (default {','.join(DEFAULT_DEVICES)}; "
+                        "absent ones are listed on the page; a leader arm that cannot start stops here)")
     add_access_args(p)
     p.add_argument("--policy", default=None, metavar="PATH",
                    help="a LeRobot pretrained_model folder (or script:FILE) that drives; touching any device takes "
                         "over, key p or the panel's button hands back; recorded steps say who drove")
     p.add_argument("--policy-device", default="cpu", choices=("cpu", "cuda", "mps"),
                    help="torch device for the policy (default cpu)")
+    p.add_argument("--keep-scene", action="store_true",
+                   help="Save, Stop and Discard leave the arm and objects where they are, and the next episode starts "
+                        "from there (default: they move to the next seed, the arm home)")
     p.add_argument("--status-file", type=Path, default=None, help=argparse.SUPPRESS)  # JSON status for scripts/tests
     p.set_defaults(func=cmd_serve, control_hz=None)  # None: 30 Hz, or the policy's training rate
 
@@ -53,13 +56,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.control_hz is None:
         args.control_hz = getattr(policy, "trained_on", None) and policy.trained_on.fps or 30.0
     session = session_from(args, verify="background", on_error="stop")
-    devices, problems = devices_from(args, session.controller.n_arms, serving=True)
-    # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
-    with cancel_on_interrupt(even_if_ignored=True) as stop:
-        return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed,
-                     rot_speed=args.rot_speed, status_file=args.status_file, problems=problems,
-                     log=lambda line: print(line, flush=True), policy=policy, token=token, no_token=args.no_token,
-                     page_keyboard=asks_for_keyboard(args.device.split(",")), stop=stop)
+    follower = follower_from(args, session)  # --follower: a real arm mirroring the simulated one, or None
+    try:
+        devices, problems = devices_from(args, session.controller.n_arms, serving=True)
+        # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
+        with cancel_on_interrupt(even_if_ignored=True) as stop:
+            return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed,
+                         rot_speed=args.rot_speed, status_file=args.status_file, problems=problems,
+                         log=lambda line: print(line, flush=True), policy=policy, token=token, no_token=args.no_token,
+                         page_keyboard=asks_for_keyboard(args.device.split(",")), stop=stop, keep_scene=args.keep_scene,
+                         follower=follower)
+    finally:
+        if follower is not None:
+            follower.close()  # torque off however serving ended (serve() closed it already when it ran)
 
 
 def _load_policy(args: argparse.Namespace):

@@ -8,11 +8,15 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from devices.base import Device
 from teleop.cli.variation_args import add_physics_args, variation_from
 from teleop.control.session import Session
 from teleop.control.session_setup import check_record_dir, open_session, open_session_devices
+
+if TYPE_CHECKING:  # annotations only: LeRobot loads only with --follower
+    from teleop.control.follower import Follower
 
 
 def add_session_args(p: argparse.ArgumentParser) -> None:
@@ -27,6 +31,10 @@ def add_session_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pos-speed", type=float, default=0.15, help="hold-to-move speed, m/s (default 0.15)")
     p.add_argument("--rot-speed", type=float, default=0.8, help="hold-to-rotate speed, rad/s (default 0.8)")
     add_physics_args(p)
+    p.add_argument("--follower", default=None, metavar="SPEC",
+                   help="a real arm that mirrors the simulated one: so101_follower:PORT[:id=NAME][:calibration=DIR]"
+                        "[:max_step=DEG] (with --robot so101; each joint moves at most max_step degrees a tick, default 5; "
+                        "the session then runs in real time)")
 
 
 def session_from(args: argparse.Namespace, verify: str = "sync", on_error: str = "raise") -> Session:
@@ -38,6 +46,19 @@ def session_from(args: argparse.Namespace, verify: str = "sync", on_error: str =
         formats=("mcap", "hdf5") if args.format == "both" else (args.format,),
         verify="off" if args.no_verify else verify, on_error=on_error,
     )
+
+
+def follower_from(args: argparse.Namespace, session: Session) -> "Follower | None":
+    """The real follower of --follower, connected and mirroring `session` (None without the flag).
+
+    A bad value, a robot it cannot mirror or an arm that cannot be reached: one line, before anything is recorded.
+    """
+    if getattr(args, "follower", None) is None:
+        return None
+    from teleop.control.follower import check_pairing, open_follower, parse_follower_spec
+
+    check_pairing(parse_follower_spec(args.follower), session.robot.name)  # before LeRobot loads (seconds)
+    return open_follower(args.follower, session)
 
 
 def devices_from(args: argparse.Namespace, n_arms: int, serving: bool = False,

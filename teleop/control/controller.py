@@ -62,7 +62,12 @@ def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
 
 @dataclass
 class ArmState:
-    """One arm's IK, its EE target (world frame, m and wxyz) and gripper."""
+    """One arm's IK, its EE target (world frame, m and wxyz) and gripper.
+
+    joint_hold: joint targets (rad) a joint command set, written to ctrl instead of IK's
+    until an EE command arrives (None: IK drives). gripper_ctrl: the gripper actuator's
+    ctrl a `gripper_opening` set (None: open or closed as `gripper_open` says).
+    """
 
     ik: ArmIK
     site_id: int
@@ -72,6 +77,11 @@ class ArmState:
     target_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     target_quat: np.ndarray = field(default_factory=lambda: np.array([1.0, 0, 0, 0]))
     gripper_open: bool = True
+    qpos_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # qpos index per arm joint
+    joint_lo: np.ndarray = field(default_factory=lambda: np.zeros(0))  # rad, joint range (-inf: unlimited)
+    joint_hi: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    joint_hold: np.ndarray | None = None
+    gripper_ctrl: float | None = None
 
 
 @dataclass
@@ -133,8 +143,12 @@ class Controller:
             ctrl_ids = ctrl_ids.astype(int)
             runs = len(ctrl_ids) > 0 and np.array_equal(ctrl_ids, np.arange(ctrl_ids[0], ctrl_ids[0] + len(ctrl_ids)))
             index = slice(int(ctrl_ids[0]), int(ctrl_ids[0]) + len(ctrl_ids)) if runs else ctrl_ids
+            jids = [self.model.joint(j).id for j in arm.joints]
+            limited = self.model.jnt_limited[jids].astype(bool)
+            ranges = self.model.jnt_range[jids]
             state = ArmState(ik=ik, site_id=self.model.site(arm.ee_site).id, ctrl_ids=ctrl_ids, gripper_id=gripper_id,
-                             ctrl_index=index)
+                             ctrl_index=index, qpos_ids=self.model.jnt_qposadr[jids].astype(int),
+                             joint_lo=np.where(limited, ranges[:, 0], -np.inf), joint_hi=np.where(limited, ranges[:, 1], np.inf))
             state.target_pos, state.target_quat = ik.ee_pose()
             self.arms.append(state)
         self.base_pos = [
@@ -146,6 +160,7 @@ class Controller:
         self.nstate = mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_INTEGRATION)
         self.steps = 0
         self._judged: tuple[int, float, bool] | None = None  # (steps, sim time, success) the step judged
+        self._observe = scene.observer(self.data)  # a task with a `hold`: judged and timed every tick; else None
         # Per-tick errors for summaries; bounded so a long browser session does not grow without end.
         self.tracking_errors: deque[np.ndarray] = deque(maxlen=TRACKING_HISTORY)
 
@@ -183,6 +198,37 @@ class Controller:
         if bid < 0:
             raise KeyError(f"no body named {name!r} in the scene")
         return self.data.xquat[bid].copy()
+
+    @property
+    def robot_name(self) -> str:
+        """The robot's name (`teleop robots`)."""
+        return self.scene.robot.name
+
+    def joint_names(self, arm: int = 0) -> tuple[str, ...]:
+        """The arm's joints in the robot's own order, named as in the robot's model (no mount prefix)."""
+        names = self.scene.arms[arm].joints
+        mounts = self.scene.robot.mounts
+        prefix = mounts[arm].prefix if arm < len(mounts) else ""
+        return tuple(n[len(prefix):] if prefix and n.startswith(prefix) else n for n in names)
+
+    def joint_positions(self, arm: int = 0) -> np.ndarray:
+        """The arm's joint positions now (rad, `joint_names` order)."""
+        return self.data.qpos[self.arms[arm].qpos_ids].copy()
+
+    def joint_targets(self, arm: int = 0) -> np.ndarray:
+        """The arm's joint position targets now: its actuators' ctrl (rad, `joint_names` order)."""
+        return self.data.ctrl[self.arms[arm].ctrl_ids].copy()
+
+    def joint_limits(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of each arm joint's range (rad; +-inf for an unlimited joint)."""
+        a = self.arms[arm]
+        return a.joint_lo.copy(), a.joint_hi.copy()
+
+    def base_pose(self, arm: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """World (position m, wxyz quaternion) of the arm's base: the body its first joint's link hangs from."""
+        first = self.model.joint(self.scene.arms[arm].joints[0]).id
+        bid = int(self.model.body_parentid[self.model.jnt_bodyid[first]])
+        return self.data.xpos[bid].copy(), self.data.xquat[bid].copy()
 
     def success(self) -> bool:
         """The task's success predicate now; judged once a tick (a task with a `hold` is judged by the step)."""
@@ -229,6 +275,9 @@ class Controller:
             self.stats.ignored_commands += 1
             return
         arm = self.arms[command.arm]
+        if command.joints is not None or command.gripper_opening is not None:
+            self._apply_joints(command, arm)
+            return
         # Read, never written in place below: every step makes a new array.
         pos = arm.target_pos if command.target_pos is None else np.asarray(command.target_pos, dtype=float)
         quat = arm.target_quat if command.target_quat is None else np.asarray(command.target_quat, dtype=float)
@@ -253,14 +302,63 @@ class Controller:
             self.stats.ignored_commands += 1
             self.note(f"ignored a non-finite target from {command.source or 'a device'}")
             return
+        if arm.joint_hold is not None and (
+            command.target_pos is not None or command.target_quat is not None or any(translation.tolist()) or any(rotation.tolist())
+        ):
+            arm.joint_hold = None  # an EE command: IK drives again, from the held joints (IK was reset to them)
         arm.target_pos = self.clamp_target(command.arm, pos)
         arm.target_quat = quat / size
+        self._apply_gripper(command, arm)
+
+    @staticmethod
+    def _apply_gripper(command: Command, arm: ArmState) -> None:
+        if command.gripper is None:
+            return
+        arm.gripper_ctrl = None
         if command.gripper == "open":
             arm.gripper_open = True
         elif command.gripper == "close":
             arm.gripper_open = False
         elif command.gripper == "toggle":
             arm.gripper_open = not arm.gripper_open
+
+    def _apply_joints(self, command: Command, arm: ArmState) -> None:
+        """A joint command (a leader arm): hold its joint targets, clamped to the ranges, with IK and the
+        EE target moved to them (forward kinematics), so a later EE command starts where the arm is."""
+        q = None
+        if command.joints is not None:
+            try:
+                q = np.array(command.joints, dtype=float)
+            except (TypeError, ValueError):
+                q = None
+            if q is None or q.shape != arm.joint_lo.shape or not math.isfinite(q.dot(q)):
+                self.stats.ignored_commands += 1
+                n = len(arm.qpos_ids)
+                self.note(f"ignored joint targets from {command.source or 'a device'}: need {n} finite numbers (rad)")
+                return
+        opening = command.gripper_opening
+        if opening is not None:
+            try:
+                opening = float(opening)
+            except (TypeError, ValueError):
+                opening = math.nan
+            if not math.isfinite(opening):
+                self.stats.ignored_commands += 1
+                self.note(f"ignored a non-finite gripper opening from {command.source or 'a device'}")
+                return
+        if q is not None:
+            held = np.minimum(np.maximum(q, arm.joint_lo), arm.joint_hi)
+            if held.tolist() != q.tolist():
+                self.stats.clamped += 1
+            arm.joint_hold = held
+            arm.ik.reset(held)
+            arm.target_pos, arm.target_quat = arm.ik.ee_pose()
+        if opening is not None and arm.gripper_id is not None:
+            g = arm.ik.arm.gripper
+            opening = min(max(opening, 0.0), 1.0)
+            arm.gripper_ctrl = g.closed + opening * (g.open - g.closed)
+            arm.gripper_open = opening >= 0.5
+        self._apply_gripper(command, arm)
 
     # --- the tick ------------------------------------------------------------
 
@@ -274,6 +372,7 @@ class Controller:
         """
         ctrl = self.data.ctrl
         for arm in self.arms:
+            arm.joint_hold = arm.gripper_ctrl = None
             arm.ik.reset(ctrl[arm.ctrl_ids])
             arm.target_pos, arm.target_quat = arm.ik.ee_pose()
             if arm.gripper_id is not None:
@@ -312,8 +411,8 @@ class Controller:
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
         self.steps += 1
-        judged = self.scene.observe(self.data)  # a task whose success must hold for a while is timed every tick
-        self._judged = None if judged is None else (self.steps, self.data.time, judged)
+        observe = self._observe  # a task whose success must hold for a while is timed every tick
+        self._judged = None if observe is None else (self.steps, self.data.time, observe())
 
         site_xpos = self.data.site_xpos
         errors = np.array([norm(site_xpos[a.site_id] - a.target_pos) for a in self.arms])
@@ -327,12 +426,18 @@ class Controller:
         ok = True
         ctrl = self.data.ctrl
         for arm in self.arms:
-            if not arm.ik.solve(arm.target_pos, arm.target_quat):
-                ok = False
-            ctrl[arm.ctrl_index] = arm.ik.q
+            if arm.joint_hold is not None:  # a joint command holds the arm: no IK
+                ctrl[arm.ctrl_index] = arm.joint_hold
+            else:
+                if not arm.ik.solve(arm.target_pos, arm.target_quat):
+                    ok = False
+                ctrl[arm.ctrl_index] = arm.ik.q
             if arm.gripper_id is not None:
-                g = arm.ik.arm.gripper
-                ctrl[arm.gripper_id] = g.open if arm.gripper_open else g.closed
+                if arm.gripper_ctrl is not None:
+                    ctrl[arm.gripper_id] = arm.gripper_ctrl
+                else:
+                    g = arm.ik.arm.gripper
+                    ctrl[arm.gripper_id] = g.open if arm.gripper_open else g.closed
         return ok
 
     def tracking_error_mm(self, since: int = 0) -> dict[str, float | None]:

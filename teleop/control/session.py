@@ -51,7 +51,9 @@ class Session:
     scene: a task name (`teleop scenes`), a task file PATH.toml or a Task; robot: a built-in name, a PATH.toml or
     a RobotSpec; seed: object placement (same seed, same scene); control_hz:
     control ticks per second (physics runs in equal steps of at most 2 ms); variation: physics
-    drawn for each seed into its model (scenes.vary.physics), recorded with every episode.
+    drawn for each seed into its model (scenes.vary.physics), recorded with every episode;
+    fresh_episodes: every episode starts from its seed's initial state and a saved or discarded one
+    moves the scene to the next seed (off: the scene stays where the last episode left it).
     """
 
     def __init__(
@@ -61,6 +63,7 @@ class Session:
         seed: int = 0,
         control_hz: float = 30.0,
         variation: Variation | None = None,
+        fresh_episodes: bool = False,
     ) -> None:
         if not (math.isfinite(control_hz) and 0 < control_hz <= 1000):
             raise SessionError(f"control rate must be between 0 and 1000 Hz, got {control_hz}")
@@ -73,6 +76,9 @@ class Session:
         self.stats = ControlStats()  # IK failures, clamped targets, ignored commands, notes: kept across resets
         self.recorder: AttachedRecorder | None = None
         self.variation = variation
+        # Every episode from its seed's initial state: a start after the arm was driven reloads the seed, and a save
+        # or discard moves to the next seed (`teleop serve` and campaigns; `teleop serve --keep-scene` turns it off).
+        self.fresh_episodes = bool(fresh_episodes)
         self.load(seed)
 
     # --- scene lifecycle -----------------------------------------------------
@@ -84,6 +90,14 @@ class Session:
         self.robot = self.scene.robot  # a user's robot gets its reach measured here
         try:
             self.controller = Controller(self.scene, self.control_hz, self.stats)  # the tick; a new one per scene
+        except ValueError as exc:
+            raise SessionError(str(exc)) from None
+
+    def restore(self) -> None:
+        """Back to the current seed's initial state: the same compiled model, a fresh tick on it (a new
+        Controller and MjData: a new scene's, without compiling one, so pages and cameras keep their model)."""
+        try:
+            self.controller = Controller(self.scene, self.control_hz, self.stats)
         except ValueError as exc:
             raise SessionError(str(exc)) from None
 
@@ -113,38 +127,58 @@ class Session:
 
     def step(self, commands: Sequence[Command] = (), ctrl: np.ndarray | None = None) -> StepResult:
         """One control tick. Episode events in the commands act first, so "start"
-        records this tick and "reset" applies the commands to the new scene.
-        `ctrl` (nu joint and gripper targets) drives the tick instead of IK."""
+        records this tick.
+        `ctrl` (nu joint and gripper targets) drives the tick instead of IK.
+        When the events began a new scene (the next seed, or this one from its initial state), the tick's
+        commands and `ctrl` are not applied: they were read against the old scene (a policy's or a leader
+        arm's absolute targets would move the arm from its initial pose in one tick), so the scene's first
+        step holds its initial pose; from the next tick devices drive it, those that play from their start
+        restarted (the browser session restarts `Restartable` devices: a leader arm eases in)."""
         events: tuple[str, ...] = ()
         for command in commands:
             if command.events:  # most ticks carry none
                 events += tuple(command.events)
-        for event in events:
-            self.handle_event(event)
+        if events:
+            before = self.controller
+            for event in events:
+                self.handle_event(event)
+            if self.controller is not before:
+                commands, ctrl = (), None
         recorder = self.recorder
         observer = recorder if recorder is not None and recorder.recording else None
         result = self.controller.step(commands, observer, ctrl)
         result.events = events
         return result
 
+    def starting_episode(self) -> None:
+        """Called just before the recorder opens an episode (a campaign reserves the episode's file index here)."""
+
     def handle_event(self, event: str) -> None:
         """start / save / discard go to the recorder (a note if there is none), record is start or save
-        as the recorder stands; reset loads the next seed."""
+        as the recorder stands; reset loads the next seed. With `fresh_episodes`, a start after the scene
+        was stepped reloads its seed first, and an episode saved or discarded moves to the next seed."""
         if event == "reset":
             self.reset()
             return
         if event not in ("start", "save", "discard", "record"):
             return
         recorder = self.recorder
+        was_recording = recorder is not None and recorder.recording
         if event == "record":  # one button: start, or save the episode being recorded
-            event = "save" if recorder is not None and recorder.recording else "start"
+            event = "save" if was_recording else "start"
         if recorder is None:
             if event == "start":
                 self.stats.note("not recording: the session has no recorder (start it with a record directory)")
             return
         if event == "start":
+            if not was_recording:
+                if self.fresh_episodes and self.controller.data.time > 0:
+                    self.restore()  # stepped since the scene loaded: the episode starts from the seed's initial state
+                self.starting_episode()
             recorder.start()
         elif event == "save":
             recorder.save()
         else:
             recorder.discard()
+        if self.fresh_episodes and was_recording and not recorder.recording:
+            self.reset()  # saved or discarded: the next episode gets the next seed

@@ -78,6 +78,7 @@ class Takeover:
         self._inference_s: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
         self._observe_s: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
         self._model = session.controller.model
+        self._tick = session.controller  # a new one also when an episode starts from its seed's initial state (same model)
         self._requests: collections.deque[Driver] = collections.deque()  # from the panel's threads
         policy.attach(env)
         policy.reset()
@@ -101,8 +102,8 @@ class Takeover:
     def steer(self, session: Session, commands: Sequence[Command]) -> tuple[list[Command], np.ndarray | None]:
         """This tick's (commands, ctrl) for Session.step: the devices' own, or theirs plus the policy's action."""
         commands = list(commands)
-        if session.controller.model is not self._model:  # reset between ticks (a button): a new scene
-            self._model = session.controller.model
+        if session.controller.model is not self._model or session.controller is not self._tick:  # reset between ticks (a button): a new scene
+            self._model, self._tick = session.controller.model, session.controller
             self._switch("policy", "new scene")
         while self._requests:
             wanted = self._requests.popleft()

@@ -28,6 +28,18 @@ the same wrapper routes extra websocket paths (the page's input channel) to
 our handlers on the same port, so one SSH tunnel is enough.
 If a viser release stopped going through that call, starting fails rather than
 serving without the check.
+
+Two more checks, as Jupyter's server makes them:
+- DNS rebinding: a web page can make its own name resolve to 127.0.0.1 and then talk to a
+  loopback server as "same origin" (its Origin and the Host it sends are equal). So a server
+  bound to loopback without a token (`local_only`) answers only requests whose Host is a
+  loopback name or address (`localhost`, `127.0.0.1`, `[::1]`, any port: an SSH tunnel's
+  local port included) and refuses the rest, websockets included, with 403 and one line.
+  A token, or a host bound elsewhere on purpose (`--host 0.0.0.0 --no-token` behind a
+  reverse proxy), leaves Host alone.
+- Guessing: after `THROTTLE_FAILS` wrong tokens within `THROTTLE_WINDOW_S` from one client
+  address, every request from it that carries a token gets 429 for `THROTTLE_BLOCK_S`, the
+  token unchecked (`TokenThrottle`). Requests without a token never count.
 """
 
 from __future__ import annotations
@@ -39,9 +51,11 @@ import os
 import re
 import secrets
 import sys
+import threading
+import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TypeVar
 from urllib.parse import parse_qs, quote, urlsplit
 
@@ -56,6 +70,11 @@ from teleop.web.viser_compat import INDEX_PATHS, Handler, ProcessRequest, with_h
 TOKEN_ENV = "TELEOP_TOKEN"
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,128}")  # goes into URLs and cookies unescaped
 COOKIE_PREFIX = "teleop_token_"
+THROTTLE_FAILS = 10  # wrong tokens from one client address ...
+THROTTLE_WINDOW_S = 1.0  # ... within this many seconds ...
+THROTTLE_BLOCK_S = 5.0  # ... and its requests carrying a token get 429 for this long
+FORBIDDEN_TOKEN = "403 Forbidden: this server needs its token (open the URL that teleop printed, with ?token=...)"
+TOO_MANY = "429 Too Many Requests: too many wrong tokens from this address; wait a few seconds"
 
 T = TypeVar("T")
 
@@ -102,12 +121,81 @@ def announce(host: str, port: int, token: str | None, what: str, reach: str, log
         log(hint)
 
 
-@dataclass(frozen=True)
+def local_host_header(host: str | None) -> bool:
+    """Whether a request's Host header names this machine by a loopback name or address (any port):
+    `localhost`, `127.0.0.1` (any of 127.0.0.0/8), `[::1]`. Anything else, or none, is not."""
+    if not host:
+        return False
+    host = host.strip()
+    if host.startswith("["):
+        end = host.find("]")
+        name, rest = (host[1:end], host[end + 1:]) if end > 0 else ("", "")
+    else:
+        name, colon, rest = host.partition(":")
+        rest = colon + rest
+    if rest and not (rest[0] == ":" and rest[1:].isdigit()):
+        return False
+    return name != "" and is_loopback(name.lower().rstrip("."))
+
+
+class TokenThrottle:
+    """Wrong tokens counted per client address; a client past the limit is blocked for a while (thread-safe)."""
+
+    def __init__(self, fails: int = THROTTLE_FAILS, window_s: float = THROTTLE_WINDOW_S,
+                 block_s: float = THROTTLE_BLOCK_S) -> None:
+        self.fails, self.window_s, self.block_s = fails, window_s, block_s
+        self._failures: dict[str, list[float]] = {}  # address -> monotonic times of its recent wrong tokens
+        self._blocked: dict[str, float] = {}  # address -> monotonic time its block ends
+        self._lock = threading.Lock()
+
+    def blocked(self, address: str) -> bool:
+        """Whether requests from `address` that carry a token are to be refused now (429)."""
+        with self._lock:
+            until = self._blocked.get(address)
+            if until is None:
+                return False
+            if time.monotonic() < until:
+                return True
+            del self._blocked[address]
+            return False
+
+    def failed(self, address: str) -> None:
+        """Count one wrong token from `address`; the limit-th within the window blocks it."""
+        now = time.monotonic()
+        with self._lock:
+            recent = [t for t in self._failures.get(address, ()) if now - t < self.window_s]
+            recent.append(now)
+            if len(recent) >= self.fails:
+                self._blocked[address] = now + self.block_s
+                recent = []
+            self._failures[address] = recent
+            if len(self._failures) > 4096:  # many addresses: forget the quiet ones
+                self._failures = {a: ts for a, ts in self._failures.items() if ts and now - ts[-1] < self.window_s}
+
+
+@dataclass
 class Gate:
-    """The token check for one server; `token=None` lets every request through."""
+    """The checks for one server: its token (`token=None` lets every request through), the loopback Host
+    rule when it is open on loopback (`local_only`), and the wrong-token throttle. `port` names the cookie;
+    a server that binds port 0 sets it once it knows its port."""
 
     token: str | None
     port: int
+    local_only: bool = False
+    throttle: TokenThrottle = field(default_factory=TokenThrottle, repr=False, compare=False)
+
+    @classmethod
+    def for_server(cls, host: str, port: int, token: str | None) -> "Gate":
+        """The gate of a server listening on `host`: Host is checked when it is loopback and has no token."""
+        return cls(token, port, local_only=token is None and is_loopback(host))
+
+    def host_allowed(self, host_header: str | None) -> bool:
+        """False for a request a loopback-only server must refuse (its Host is not a loopback name)."""
+        return not self.local_only or local_host_header(host_header)
+
+    def carries_token(self, request: Request) -> bool:
+        """Whether a request brings any token (query or this server's cookie): only those count and are throttled."""
+        return self.query_token(request) is not None or self.cookie_token(request) is not None
 
     @property
     def cookie_name(self) -> str:
@@ -154,6 +242,12 @@ def same_origin(request: Request) -> bool:
     return urlsplit(origin).netloc.lower() == host.lower() and host != ""
 
 
+def not_local_message(port: int) -> str:
+    """The 403 line for a request whose Host is not loopback, on a server open to loopback only."""
+    return (f"403 Forbidden: this server answers only requests to localhost or 127.0.0.1 (a page of another site "
+            f"reaching it by DNS rebinding is refused); open http://127.0.0.1:{port}/\n")
+
+
 def _is_upgrade(request: Request) -> bool:
     return request.headers.get("Upgrade", "").lower() == "websocket"
 
@@ -172,9 +266,17 @@ def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler
     edited: dict[bytes, bytes] = {}
 
     async def process_request(connection: ServerConnection, request: Request) -> Response | None:
-        if not gate.allows(request):
-            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: this server needs its token "
-                                      "(open the URL that teleop printed, with ?token=...)\n")
+        if not gate.host_allowed(request.headers.get("Host")):
+            return connection.respond(http.HTTPStatus.FORBIDDEN, not_local_message(gate.port))
+        if gate.token is not None:
+            address = str(connection.remote_address[0]) if connection.remote_address else ""
+            carries = gate.carries_token(request)
+            if carries and gate.throttle.blocked(address):
+                return connection.respond(http.HTTPStatus.TOO_MANY_REQUESTS, TOO_MANY + "\n")
+            if not gate.allows(request):
+                if carries:
+                    gate.throttle.failed(address)
+                return connection.respond(http.HTTPStatus.FORBIDDEN, FORBIDDEN_TOKEN + "\n")
         path = urlsplit(request.path).path
         if _is_upgrade(request) and not same_origin(request):  # viser's websocket too: it drives and saves
             return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")

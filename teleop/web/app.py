@@ -72,9 +72,11 @@ class WebApp:
         headline: Callable[[], str] | None = None,
         draw_unwatched: bool = True,
         status_period_s: float = STATUS_PERIOD_S,
+        status_form: Callable[[dict], str] | None = None,
     ) -> None:
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
+        self.follower = None  # a real arm mirroring the simulated one (teleop.control.follower.Follower), set by serve()
         self.headline = headline  # a line of markdown shown under the task (a campaign's progress), asked at 4 Hz
         self.devices = list(devices)
         self.device_problems = list(device_problems)
@@ -87,10 +89,10 @@ class WebApp:
         self._status_due = 0.0
         self.status_period_s = status_period_s  # s between status-file writes
         self._closed = False
-        self.url = page_url(host, port)
-        self.gate = Gate(token, port)  # token None: open (loopback, or --no-token)
-        self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
-        self.phone_url: str | None = None  # the phone page's address, when a phone device runs
+        self.gate = Gate.for_server(host, port, token)  # token None: open (loopback, or --no-token)
+        self.token = token
+        self.status_form = status_form  # what the status file holds, made from status() (a campaign's typed status)
+        self.has_phone_page = False
 
         if session.recorder is not None:
             session.recorder.on_verified = self._on_verified
@@ -110,15 +112,21 @@ class WebApp:
         self.software_views: set[int] = set()  # viser clients drawing in software, given the cheap view
         self.input.listener = self.page_inputs  # every page talks: at least to say how it draws
         pages = {PHONE_PATH: PageInputs.phone_page()} if self.page_inputs.phone is not None else {}
-        if pages:
-            self.phone_url = url_with_token(self.url + PHONE_PATH, token)
-        check_port_free(host, port)
+        self.has_phone_page = bool(pages)
+        if port != 0:  # port 0: the system picks a free one as viser binds (a campaign's sessions: no race)
+            check_port_free(host, port)
         self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
                                     lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages,
                                     head=head_script())
+        if port == 0:
+            self.port = port = self.gate.port = self.server.get_port()
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
+        self.url = page_url(host, port)
+        self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
+        # the phone page's address, when a phone device runs (with its token: printed, never written to a file)
+        self.phone_url: str | None = url_with_token(self.url + PHONE_PATH, token) if self.has_phone_page else None
         self.server.gui.configure_theme(control_width="large", show_logo=False, show_share_button=False)
         self.server.gui.main_panel.dock_right()
 
@@ -278,12 +286,15 @@ class WebApp:
                 objects[model.body(model.jnt_bodyid[j]).name] = [round(float(v), 6) for v in snap.qpos[adr:adr + 3]]
         return {
             "url": self.url,
+            "port": self.port,
             "token_required": self.gate.token is not None,
             "pid": os.getpid(),
             "wall_time": time.time(),
             "scene": session.scene_name,
             "robot": session.robot.name,
             "seed": snap.seed,
+            "fresh_episodes": session.fresh_episodes,  # Save / Stop / Discard move to the next seed (off: --keep-scene)
+            "device_restarts": self.sim.device_restarts,  # new scenes on which Restartable devices began again
             "variation": session.scene.variation or None,  # the physics drawn for this seed (--vary), else null
             "control_hz": session.control_hz,
             "tick": snap.tick,
@@ -326,9 +337,10 @@ class WebApp:
             "input_dropped": self.input.dropped,
             "input": self.input.status(),
             "page_keyboard": self.page_keys.state() if self.page_keys is not None else None,
-            "phone_url": self.phone_url,
+            "phone_url": self.url + PHONE_PATH if self.phone_url is not None else None,  # no token in a file
             "driver": self.takeover.driver if self.takeover is not None else "operator",
             "policy": self.takeover.status() if self.takeover is not None else None,
+            "follower": self.follower.status() if self.follower is not None else None,  # --follower: state, gap, sends
             "notes": self.notes(),
             "headline": self.headline() if self.headline is not None else None,
             "error": self.sim.error,
@@ -343,10 +355,16 @@ class WebApp:
         self.write_status()
 
     def write_status(self) -> None:
+        """The status file, whole (a rename), readable by its owner only."""
         if self.status_file is None:
             return
+        status = self.status()
+        text = json.dumps(status, default=_jsonable) if self.status_form is None else self.status_form(status)
         tmp = self.status_file.with_name(self.status_file.name + ".tmp")
-        tmp.write_text(json.dumps(self.status(), default=_jsonable))
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            os.fchmod(f.fileno(), 0o600)
+            f.write(text)
         os.replace(tmp, self.status_file)
 
 

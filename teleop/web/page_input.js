@@ -11,6 +11,11 @@
 // is ignored) and its release is sent under the name it was pressed with. When
 // the page loses focus or is hidden every held key is released (and the server
 // lets go by itself when this socket closes or stops answering its pings).
+//
+// A lost server is hard to miss: when this socket closes (the server stopped, the network went away) a
+// banner across the top of the page says "disconnected from the server: reconnecting..." (viser alone only
+// greys its panel); it goes once this socket is open again and viser has reconnected too (viser then sends
+// the whole scene and panel again, and runs this script again: `configure`).
 (() => {
   const api = window.__teleopInput;
   if (api) {
@@ -23,6 +28,30 @@
   let retry = null;
   let closing = false;
   const held = new Map(); // KeyboardEvent.code -> the key sent down
+  let lost = false; // the socket closed: the banner is up until this socket and viser's are back
+  let viserBack = true; // viser ran this script since the loss (it does on every connection of its own)
+  let banner = null;
+
+  const showBanner = (show) => {
+    if (show && banner === null) {
+      banner = document.createElement("div");
+      banner.id = "teleop-disconnected";
+      banner.setAttribute("role", "alert");
+      banner.textContent = "disconnected from the server: reconnecting…";
+      // Inline style: this page is viser's and has no stylesheet of ours.
+      banner.style.cssText = "position:fixed;top:0;left:0;right:0;z-index:100000;margin:0;padding:10px 12px;"
+        + "background:#b3261e;color:#fff;font:600 15px system-ui,sans-serif;text-align:center;"
+        + "box-shadow:0 2px 8px rgba(0,0,0,.5);pointer-events:none";
+    }
+    if (banner === null) return;
+    if (show && !banner.isConnected) document.body.appendChild(banner);
+    if (!show && banner.isConnected) banner.remove();
+    document.documentElement.dataset.teleopConnection = show ? "lost" : "ok";
+  };
+  const updateBanner = () => {
+    if (lost && socket !== null && socket.readyState === WebSocket.OPEN && viserBack) lost = false;
+    showBanner(lost && !closing);
+  };
 
   const send = (message) => {
     if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
@@ -47,11 +76,19 @@
     if (closing) return;
     const ws = new WebSocket(url());
     socket = ws;
-    ws.onopen = hello;
+    ws.onopen = () => {
+      hello();
+      updateBanner();
+    };
     ws.onclose = () => {
       if (socket !== ws) return;
       socket = null;
       held.clear(); // the server let go of this page's keys when the socket closed
+      if (!closing) {
+        lost = true;
+        viserBack = false;
+        updateBanner();
+      }
       if (!closing && retry === null) retry = setTimeout(connect, 1000);
     };
   };
@@ -119,10 +156,13 @@
     configure(next) {
       config = next;
       keys = new Set(config.keys);
+      viserBack = true;
       if (socket === null && retry === null) connect();
       else hello();
+      updateBanner();
     },
     connected: () => socket !== null && socket.readyState === WebSocket.OPEN,
+    disconnected: () => lost,
     held: () => Array.from(held.values()),
     sendRaw: (text) => {
       // For tests and debugging: a message as given, valid or not (the server must cope).

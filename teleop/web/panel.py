@@ -225,6 +225,8 @@ class Panel(LoopThread):
         else:
             head = f"Ready to record into `{recorder.directory}`"
         lines = [head]
+        if recorder is not None and not snap.recording:
+            lines.append(self._next_episode_text(snap))
         if snap.recording_error and not snap.recording:
             lines.append(f"**Recording stopped:** {snap.recording_error}")
         lines += [f"Saved: **{snap.episodes_saved}** · Discarded: **{snap.episodes_discarded}**"]
@@ -232,6 +234,12 @@ class Panel(LoopThread):
         if last:
             lines.append(last)
         return "  \n".join(lines)
+
+    def _next_episode_text(self, snap) -> str:
+        """Where the next episode starts: its seed's initial state, or (--keep-scene) the scene as it is."""
+        if self.app.session.fresh_episodes:
+            return f"Next episode: **seed {snap.seed}**, from its initial state (Record puts the arm home)"
+        return f"Next episode: seed {snap.seed}, from the scene as it is now (`--keep-scene`)"
 
     def _devices_text(self) -> str:
         rows = []
@@ -244,6 +252,9 @@ class Panel(LoopThread):
         for line in self.app.device_problems:
             name, _, reason = line.partition(": ")
             rows.append(f"- **{name}**: not started ({reason})")
+        follower = getattr(self.app, "follower", None)
+        if follower is not None:
+            rows.append(f"- {follower.line()}")  # "follower: tracking, gap 1.2 deg"
         return "\n".join(rows) or "no devices"
 
     def _loop_text(self, snap) -> str:

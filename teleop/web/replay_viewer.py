@@ -160,7 +160,7 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080, t
     token = resolve_token(host, token, no_token)
     check_port_free(host, port)
     server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop replay", verbose=False),
-                           lambda started: started.stop(), Gate(token, port), routes={})
+                           lambda started: started.stop(), Gate.for_server(host, port, token), routes={})
     try:
         if server.get_port() != port:  # someone took it between our check and viser's bind
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")

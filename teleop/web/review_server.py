@@ -10,21 +10,21 @@ r reject, n note). Scripts use the same API:
 - `POST /api/verdict` with `{"episode": id, "verdict": "accept"|"reject", "reviewer": name,
   "note": text}`: records a verdict in the episode's sidecar (replay.review.verdicts).
 
-No viser here: a list and a <video> need a small threaded stdlib server. It sits
-behind the same gate as `teleop serve` and the replay viewer (teleop.web.access):
-a token off loopback (query or the per-port cookie), and a POST from another
-site's page (its Origin is not this server) is refused.
+No viser here: a list and a <video> need a small threaded stdlib server
+(teleop.web.stdlib_http, shared with the campaign lobby: read deadline, JSON, Range). It
+sits behind the same gate as `teleop serve` and the replay viewer (teleop.web.access):
+a token off loopback (query or the per-port cookie), the loopback Host rule on an open
+loopback server, the wrong-token throttle, and a POST from another site's page (its
+Origin is not this server) is refused.
 """
 
 from __future__ import annotations
 
 import getpass
-import json
 import re
 import sys
 import threading
 from collections.abc import Callable
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
@@ -36,8 +36,9 @@ from replay.review import listing
 from replay.review.verdicts import VERDICTS, write_verdict
 from scenes.errors import TeleopError, first_line
 from teleop.errors import UsageError
-from teleop.web.access import Gate, announce, resolve_token, same_origin
+from teleop.web.access import FORBIDDEN_TOKEN, Gate, announce, resolve_token, same_origin
 from teleop.web.net import check_port_free
+from teleop.web.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused
 
 HERE = Path(__file__).resolve().parent
 PAGES = {"/": ("review.html", "text/html; charset=utf-8"), "/review.js": ("review.js", "text/javascript; charset=utf-8")}
@@ -66,119 +67,91 @@ class ReviewFolder:
         return next((r for r in self.rows() if r["id"] == episode_id), None)
 
 
-def make_handler(review: ReviewFolder, gate: Gate, reviewer: str):
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "teleop-review"
+def make_handler(review: ReviewFolder, the_gate: Gate, reviewer: str) -> type[GatedHandler]:
+    gate = the_gate
 
-        def log_message(self, format: str, *args) -> None:  # noqa: A002 - the stdlib's name
-            pass
+    class Handler(GatedHandler):
+        server_version = "teleop-review"
+        gate = the_gate
+        max_body = MAX_BODY
 
         def _request(self) -> Request:
             return Request(self.path, Headers(list(self.headers.items())))
 
-        def _send(self, status: int, body: bytes, kind: str, extra: dict | None = None) -> None:
-            self.send_response(status)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            if gate.token is not None:
-                self.send_header("Referrer-Policy", "no-referrer")
-                if status == 200 and gate.wants_cookie(self._request()):
-                    self.send_header("Set-Cookie", gate.set_cookie())
-            for key, value in (extra or {}).items():
-                self.send_header(key, value)
-            self.end_headers()
-            if self.command != "HEAD":
-                self.wfile.write(body)
-
-        def _json(self, obj, status: int = 200) -> None:
-            self._send(status, json.dumps(obj).encode(), "application/json")
-
-        def _error(self, status: int, message: str) -> None:
-            self._json({"error": message}, status)
+        def send_common_headers(self, status: int) -> None:
+            super().send_common_headers(status)
+            if gate.token is not None and status == 200 and gate.wants_cookie(self._request()):
+                self.send_header("Set-Cookie", gate.set_cookie())
 
         def _allowed(self) -> bool:
-            if not gate.allows(self._request()):
-                self._send(403, b"403 Forbidden: this server needs its token (open the URL that teleop printed, "
-                                b"with ?token=...)\n", "text/plain")
+            """The Host rule, the throttle and the token; False once a refusal is answered."""
+            if not self.host_allowed():
+                return False
+            request = self._request()
+            carries = gate.carries_token(request)
+            if self.throttled(carries):
+                return False
+            if not gate.allows(request):
+                if carries:
+                    self.token_failed()
+                self.send_text(403, FORBIDDEN_TOKEN + "\n")
                 return False
             return True
 
-        def do_HEAD(self) -> None:
+        def do_HEAD(self) -> None:  # noqa: N802 - http.server's name
             self.do_GET()
 
-        def do_GET(self) -> None:
+        def do_GET(self) -> None:  # noqa: N802
+            path = unquote(urlsplit(self.path).path)
+            if path == STYLESHEET_PATH:  # nothing secret: no token, never counted
+                if self.host_allowed():
+                    self.send_stylesheet()
+                return
             if not self._allowed():
                 return
-            path = unquote(urlsplit(self.path).path)
             try:
                 if path in PAGES:
                     name, kind = PAGES[path]
-                    self._send(200, (HERE / name).read_bytes(), kind)
+                    self.send_body(200, (HERE / name).read_bytes(), kind)
                 elif path == "/api/episodes":
-                    self._json(review.rows())
+                    self.send_json(review.rows())
                 elif path == "/api/info":
-                    self._json({"folder": str(review.folder), "reviewer": reviewer, "verdicts": list(VERDICTS)})
+                    self.send_json({"folder": str(review.folder), "reviewer": reviewer, "verdicts": list(VERDICTS)})
                 elif (m := re.fullmatch(r"/thumb/(.+)\.png", path)) and (ep := review.path(m.group(1))):
-                    self._send(200, listing.thumbnail(ep), "image/png")
+                    self.send_body(200, listing.thumbnail(ep), "image/png")
                 elif (m := re.fullmatch(r"/video/(.+)\.mp4", path)) and (ep := review.path(m.group(1))):
-                    self._file(listing.video(ep), "video/mp4")
+                    self.send_file(listing.video(ep), "video/mp4")
                 else:
-                    self._error(404, f"{path}: not found")
+                    self.send_refusal(Refused(404, f"{path}: not found"))
             except ConnectionError:  # the browser went away (a <video> drops ranges it no longer wants)
-                return
+                self.close_connection = True
             except (TeleopError, OSError) as exc:
-                self._error(500, first_line(exc))
+                self.send_refusal(Refused(500, first_line(exc)))
 
-        def _file(self, file: Path, kind: str) -> None:
-            """A file, or the byte range asked for (a <video> seeks with Range requests)."""
-            data = file.read_bytes()
-            ranged = re.fullmatch(r"bytes=(\d*)-(\d*)", self.headers.get("Range", "").strip())
-            if ranged and (ranged.group(1) or ranged.group(2)):
-                size = len(data)
-                if ranged.group(1):
-                    start = int(ranged.group(1))
-                    end = min(int(ranged.group(2)) if ranged.group(2) else size - 1, size - 1)
-                else:
-                    start, end = max(0, size - int(ranged.group(2))), size - 1
-                if start > end or start >= size:
-                    self._send(416, b"", kind, {"Content-Range": f"bytes */{size}"})
-                    return
-                self._send(206, data[start:end + 1], kind,
-                           {"Content-Range": f"bytes {start}-{end}/{size}", "Accept-Ranges": "bytes"})
-                return
-            self._send(200, data, kind, {"Accept-Ranges": "bytes"})
-
-        def do_POST(self) -> None:
+        def do_POST(self) -> None:  # noqa: N802
             if not self._allowed():
                 return
             if not same_origin(self._request()):
-                self._send(403, b"403 Forbidden: cross-origin\n", "text/plain")
-                return
-            if urlsplit(self.path).path != "/api/verdict":
-                self._error(404, "not found")
+                self.send_text(403, "403 Forbidden: cross-origin\n")
                 return
             try:
-                length = int(self.headers.get("Content-Length", "0"))
-                if not 0 < length <= MAX_BODY:
-                    raise ValueError("a JSON body is required")
-                body = json.loads(self.rfile.read(length))
-                if not isinstance(body, dict):
-                    raise ValueError("the body must be a JSON object")
-            except ValueError as exc:
-                self._error(400, str(exc))
+                if urlsplit(self.path).path != "/api/verdict":
+                    raise Refused(404, "not found")
+                body = self.read_json()
+                if not body:
+                    raise Refused(400, "a JSON body is required")
+                episode = review.path(str(body.get("episode", "")))
+                if episode is None:
+                    raise Refused(404, f"no episode {body.get('episode')!r} in {review.folder}")
+                try:
+                    written = write_verdict(episode, body.get("verdict"), str(body.get("reviewer") or ""),
+                                            str(body.get("note") or ""))
+                except TeleopError as exc:
+                    raise Refused(400 if isinstance(exc, ValueError) else 500, first_line(exc)) from None
+            except Refused as refused:
+                self.send_refusal(refused)
                 return
-            episode = review.path(str(body.get("episode", "")))
-            if episode is None:
-                self._error(404, f"no episode {body.get('episode')!r} in {review.folder}")
-                return
-            try:
-                written = write_verdict(episode, body.get("verdict"), str(body.get("reviewer") or ""),
-                                        str(body.get("note") or ""))
-            except TeleopError as exc:
-                self._error(400 if isinstance(exc, ValueError) else 500, first_line(exc))
-                return
-            self._json({"episode": episode.name, **written})
+            self.send_json({"episode": episode.name, **written})
 
     return Handler
 
@@ -204,7 +177,7 @@ def serve_review(folder: str | Path, host: str = "127.0.0.1", port: int = 8080, 
 
     review.rows(progress)
     try:
-        server = ThreadingHTTPServer((host, port), make_handler(review, Gate(token, port), getpass.getuser()))
+        server = QuietServer((host, port), make_handler(review, Gate.for_server(host, port, token), getpass.getuser()))
     except OSError as exc:
         raise UsageError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     server.daemon_threads = True

@@ -22,6 +22,7 @@ from teleop.web.app import STATUS_PERIOD_S, WebApp
 from teleop.web.net import check_port_free, exposure_warning, remote_hint
 
 if TYPE_CHECKING:  # annotations only
+    from teleop.control.follower import Follower
     from teleop.learn.policy import Policy
 
 DEFAULT_DEVICES = SERVE_DEVICES  # also teleop serve's --device default
@@ -51,6 +52,10 @@ def serve(
     draw_unwatched: bool = True,
     stop: threading.Event | None = None,
     status_period_s: float = STATUS_PERIOD_S,
+    keep_scene: bool = False,
+    status_form: Callable[[dict], str] | None = None,
+    print_token: bool = True,
+    follower: "Follower | None" = None,
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C or `stop` is set; returns 0, or 1 if the loop failed.
 
@@ -71,9 +76,19 @@ def serve(
     headline: a line of markdown the panel shows under the task, asked a few times a second
     (a campaign's progress: teleop/campaign/progress.py).
     draw_unwatched: send scene updates with no browser connected (False: none then, saving the CPU).
+    port: 0 binds a port the system picks (the status file's `port` says which).
+    status_form: what the status file holds, made from the status dict (default: that dict as JSON).
+    print_token: False logs the page's URL without its token (a campaign's session, whose log is a file:
+    the lobby hands the URL to the operator instead).
+    keep_scene: Save, Stop and Discard leave the scene as it is and the next episode starts from there
+    (default: they move to the next seed, and every episode starts from its seed's initial state).
+    follower: a real arm already following `session` (teleop.control.follower); its state is on the page
+    and in the status, and it is closed (torque off) when serving ends, however it ends.
     """
     token = resolve_token(host, token, no_token)  # a bad combination fails before anything starts
-    check_port_free(host, port)
+    if port != 0:
+        check_port_free(host, port)
+    session.fresh_episodes = not keep_scene
     words = [d for d in devices if isinstance(d, str)]
     started = [d for d in devices if not isinstance(d, str)]
     if page_keyboard is None:
@@ -96,13 +111,14 @@ def serve(
         app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
                      pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token,
                      page_keyboard=page_keyboard, headline=headline, draw_unwatched=draw_unwatched,
-                     status_period_s=status_period_s)
+                     status_period_s=status_period_s, status_form=status_form)
     except BaseException:
         for d in started:
             d.close()
         if takeover is not None:
             takeover.close()
         raise
+    app.follower = follower
     warning = exposure_warning(host, port) if token is None else None
     if warning:
         print(warning, file=sys.stderr)
@@ -111,7 +127,7 @@ def serve(
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
     if takeover is not None:
         log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
-    log(f"open {app.page_url} in a browser (Ctrl-C to stop)")
+    log(f"open {app.page_url if print_token else app.url} in a browser (Ctrl-C to stop)")
     hint = remote_hint(host)
     if hint:
         log(hint)
@@ -126,6 +142,8 @@ def serve(
         pass
     finally:
         saved, _ = shielded(lambda: _close(app, takeover))  # a second Ctrl-C must not cut a file short
+        if follower is not None:
+            shielded(follower.close)  # stop sending, torque off
     for path in saved:
         log(f"saved {path} (incomplete: stopped mid-episode)")
     snap = app.sim.snapshot

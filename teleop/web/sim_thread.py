@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from devices.base import InputStamped
+from devices.base import InputStamped, Restartable
+from scenes.errors import first_line
 from teleop.control.controller import StepResult
 from teleop.control.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
 from teleop.control.session import Session
@@ -98,6 +99,9 @@ class SimThread(LoopThread):
         self.tick_latency_ms: collections.deque[float] = collections.deque(maxlen=200)
         self.on_tick: Callable[[], None] | None = None  # called (in this thread) after every tick: the drawer's cue
         self._stamped = [d for d in self.devices if isinstance(d, InputStamped)]  # checked once: a Protocol check is slow
+        self._restartable = [d for d in self.devices if isinstance(d, Restartable)]
+        self._devices_tick = session.controller  # the scene (its tick) the devices last started on
+        self.device_restarts = 0  # times the Restartable devices began again on a new scene
         self._saved_seen = len(session.recorder.paths) if session.recorder is not None else 0
         self._tick_start = 0.0
         self.pacer = Pacer(session.dt, self._stop)
@@ -199,6 +203,7 @@ class SimThread(LoopThread):
         self.sim_seconds += session.dt
         self._ticks += 1
         self._check_saved()
+        self._check_scene()
         self.snapshot = self._snapshot()
         self._compute_s.append(time.perf_counter() - self._tick_start)
         stamp = time.monotonic()
@@ -220,6 +225,25 @@ class SimThread(LoopThread):
             except Exception as exc:  # noqa: BLE001 - a failed button must not stop the loop
                 self.session.stats.note(f"{type(exc).__name__}: {exc}")
             self._check_saved()
+            self._check_scene()
+
+    def _check_scene(self) -> None:
+        """A new scene (a reset, or an episode saved, discarded or started afresh): the devices that play from
+        the beginning (a script, a leader arm that eases in to the robot's pose) start again, as `teleop run`
+        restarts them between episodes, before their next poll."""
+        controller = self.session.controller  # a new one for a new scene, and for the same seed started afresh
+        if controller is self._devices_tick:
+            return
+        self._devices_tick = controller
+        self.device_restarts += 1
+        for device in self._restartable:
+            if device.name in self.device_problems:
+                continue
+            try:
+                device.restart()
+            except Exception as exc:  # noqa: BLE001 - a device's failure must not stop the loop
+                self.device_problems[device.name] = first_line(exc)
+                self.session.stats.note(f"{device.name} stopped: {self.device_problems[device.name]}")
 
     def _check_saved(self) -> None:
         recorder = self.session.recorder

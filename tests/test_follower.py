@@ -1,0 +1,274 @@
+"""A real SO-101 follower mirrors the simulated so101 (issue 47 item 3), through LeRobot's own `SOFollower`.
+
+The follower is the byte-level Feetech emulator on a pseudo-terminal (tests/servo_emulator.py), started far from
+the simulated pose; LeRobot is real and unpatched. What is checked is what reached the servos: the
+Goal_Position writes ease in at no more than max_step degrees a tick per joint, then follow the simulated arm's
+targets, and Torque_Enable 0 reaches every servo when the session ends (script end, Ctrl-C, SIGTERM, serve
+stopped). Bad pairings and ports are one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from devices.base import DeviceError
+from devices.command import Command
+from replay import load_episode
+from teleop.control.follower import Follower, check_pairing, open_follower, parse_follower_spec
+from teleop.control.session import Session
+from teleop.errors import UsageError
+from tests.servo_emulator import MOTOR_NAMES, FeetechEmulator
+from tests.support import ROOT, assert_one_line_error, run_cli, wait_until, write_script
+
+pytestmark = pytest.mark.e2e
+
+MAX_STEP_DEG = 5.0
+STEP_RAW = MAX_STEP_DEG * 4095 / 360 + 1  # the largest change of an arm joint's goal between two writes, raw steps
+RATE = 3000  # raw steps/s the emulated servos move at (an STS3215 at 12 V turns about 270 deg/s)
+# Far from the simulated so101's home pose (0, 9, -5, 87, 0 degrees): up to 87 degrees off, the jaws shut.
+FAR = {1: 1250, 2: 2800, 3: 1300, 4: 2000, 5: 2600, 6: 2020}
+ID = "follower_arm"
+
+
+def start_follower(tmp_path: Path, **kwargs) -> tuple[FeetechEmulator, Path]:
+    arm = FeetechEmulator.start(tmp_path, role="follower", rate=RATE, positions=FAR, **kwargs)
+    cal = tmp_path / "cal"
+    arm.write_calibration_file(cal, ID)
+    return arm, cal
+
+
+def spec_of(arm: FeetechEmulator, cal: Path) -> str:
+    return f"so101_follower:{arm.port}:id={ID}:calibration={cal}:max_step={MAX_STEP_DEG:g}"
+
+
+def goal_rows(arm: FeetechEmulator) -> list[tuple[float, dict[int, int]]]:
+    """The Goal_Position sync writes, in order: (time, {id: raw})."""
+    rows: dict[float, dict[int, int]] = {}
+    for w in arm.goal_log():
+        rows.setdefault(w["t"], {})[w["id"]] = w["raw"]
+    return sorted(rows.items())
+
+
+def step_raw(arm: FeetechEmulator, servo: int) -> float:
+    """max_step in raw steps: degrees for the arm joints; for the gripper LeRobot's 0..100 over its range."""
+    motor, cal = arm.motor_of(servo)
+    return STEP_RAW if motor != "gripper" else MAX_STEP_DEG / 100 * (cal.range_max - cal.range_min) + 1
+
+
+def assert_eased(arm: FeetechEmulator, start: dict[int, int]) -> list[dict[int, int]]:
+    """No joint's goal ever moved more than max_step from the one before (the first from where the servo was)."""
+    goals = [g for _, g in goal_rows(arm)]
+    assert goals, "no Goal_Position was written"
+    previous = dict(start)
+    for k, goal in enumerate(goals):
+        assert set(goal) == set(range(1, 7)), goal
+        for i, raw in goal.items():
+            assert abs(raw - previous[i]) <= step_raw(arm, i), f"goal {k}: servo {i} jumped {previous[i]} -> {raw}"
+        previous = goal
+    return goals
+
+
+def assert_torque_off_at_end(arm: FeetechEmulator) -> None:
+    """Every servo got Torque_Enable 0 after the last goal."""
+    last_goal = max(w["t"] for w in arm.goal_log())
+    off = {w["id"] for w in arm.torque_log() if w["value"] == 0 and w["t"] >= last_goal}
+    assert off == set(range(1, 7)), arm.torque_log()[-8:]
+
+
+def raw_targets(arm: FeetechEmulator, ctrl: np.ndarray) -> dict[int, int]:
+    """A recorded so101 ctrl row (5 joints rad, gripper rad 0 closed .. 0.55 open) as the raw goals LeRobot writes."""
+    action = {f"{m}.pos": math.degrees(v) for m, v in zip(MOTOR_NAMES[:5], ctrl[:5])}
+    action["gripper.pos"] = 100.0 * min(max(ctrl[5] / 0.55, 0.0), 1.0)
+    return arm.raw_of(action)
+
+
+# --- the command line ---------------------------------------------------------------------------------------
+
+def test_run_eases_the_follower_in_then_it_follows_the_simulated_arm(tmp_path: Path):
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        script = write_script(tmp_path / "s.json", [
+            {"duration": 1.0, "gripper": "open"},  # hold still while the follower comes over
+            {"duration": 1.5, "move": [0.04, 0.05, 0.04]},
+        ])
+        started = time.monotonic()
+        result = run_cli("run", "--device", f"script:{script}", "--robot", "so101", "--follower", spec_of(arm, cal),
+                         "--record", str(tmp_path / "rec"), "--json", timeout=240)
+        assert result.returncode == 0, result.stderr[-3000:]
+        summary = json.loads(result.stdout)
+        # the session ran in wall-clock time (2.5 s of script), not flat out
+        assert summary["wall_seconds"] >= 2.3 and time.monotonic() - started >= 2.3
+        follower = summary["follower"]
+        assert follower["state"] == "tracking" and follower["sent"] >= 40 and follower["clamped"] == 0, follower
+        assert follower["hz"] == 0 or follower["hz"] > 20
+        goals = assert_eased(arm, FAR)
+        assert_torque_off_at_end(arm)
+        episode = load_episode(Path(summary["files"][0]))
+        targets = [raw_targets(arm, row) for row in episode.ctrl]
+        # easing in: the wrist, 87 degrees off, needs 17 goals to get there, the gripper (shut, to open) 20
+        first_on_target = next(k for k, g in enumerate(goals) if all(abs(g[i] - targets[0][i]) <= 2 for i in range(1, 7)))
+        assert first_on_target >= 19
+        # then every goal is one of the simulated arm's targets (to the raw step LeRobot truncates to)
+        for k, goal in enumerate(goals[first_on_target + 2:], start=first_on_target + 2):
+            gap = min(max(abs(goal[i] - t[i]) for i in range(1, 7)) for t in targets)
+            assert gap <= 2, f"goal {k} {goal} is none of the simulated targets (nearest {gap} raw steps off)"
+        # and the arm moved with the script: the last goal is the end of the move, far from where the hold was
+        assert max(abs(goals[-1][i] - targets[0][i]) for i in range(1, 6)) > 30
+        assert max(abs(goals[-1][i] - targets[-1][i]) for i in range(1, 7)) <= 8
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_run_disables_torque(tmp_path: Path, sig: int):
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        script = write_script(tmp_path / "s.json", [{"duration": 120.0, "move": [0.0, 0.05, 0.0]}])
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", "--device", f"script:{script}", "--robot", "so101",
+                                 "--follower", spec_of(arm, cal)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            wait_until(lambda: len(goal_rows(arm)) >= 10 or proc.poll() is not None, 120, "goals sent to the follower")
+            assert proc.poll() is None, proc.communicate()[1][-2000:]
+            assert not any(w["value"] == 0 for w in arm.torque_log() if w["t"] > goal_rows(arm)[0][0])
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == 130, err[-2000:]
+        assert "Traceback" not in err
+        assert_eased(arm, FAR)
+        assert_torque_off_at_end(arm)
+
+
+def test_serve_shows_the_follower_and_disables_torque_when_stopped(tmp_path: Path):
+    from tests.browser import ServeProcess
+
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        server = ServeProcess(["--robot", "so101", "--device", "gizmo", "--follower", spec_of(arm, cal)], tmp_path,
+                              env={"PYTHONPATH": str(ROOT)})
+        try:
+            status = server.wait_for(lambda s: (s.get("follower") or {}).get("state") == "tracking", 60, "tracking")
+            follower = status["follower"]
+            assert follower["max_gap_deg"] is not None and follower["max_gap_deg"] < 3.0
+            assert follower["sent"] > 10 and follower["clamped"] == 0
+        finally:
+            code = server.stop(signal.SIGTERM)
+        assert code == 0, server.log()[-2000:]
+        assert_eased(arm, FAR)
+        assert_torque_off_at_end(arm)
+
+
+def test_a_follower_pairs_only_with_its_own_robot(tmp_path: Path):
+    result = run_cli("run", "--device", "script:x.json", "--robot", "panda", "--follower", "so101_follower:/dev/ttyACM0")
+    assert_one_line_error(result, "so101_follower", "so101", "panda")
+
+
+def test_a_missing_port_is_one_line(tmp_path: Path):
+    script = write_script(tmp_path / "s.json", [{"duration": 0.5}])
+    result = run_cli("run", "--device", f"script:{script}", "--robot", "so101", "--record", str(tmp_path / "rec"),
+                     "--follower", f"so101_follower:{tmp_path / 'ttyNOPE'}")
+    assert_one_line_error(result, "ttyNOPE", "no such serial port")
+    assert not (tmp_path / "rec").exists() or not any((tmp_path / "rec").iterdir())  # nothing was recorded
+
+
+def test_a_wrong_servo_model_is_one_line(tmp_path: Path):
+    arm, cal = start_follower(tmp_path, model={1: 777, 2: 777, 3: 1234, 4: 777, 5: 777, 6: 777})
+    with arm:
+        script = write_script(tmp_path / "s.json", [{"duration": 0.5}])
+        result = run_cli("run", "--device", f"script:{script}", "--robot", "so101", "--follower", spec_of(arm, cal))
+        assert_one_line_error(result, arm.port, "elbow_flex", "1234", "SO-101")
+        assert arm.goal_log() == [] and not any(w["value"] == 1 for w in arm.torque_log())  # never energised
+
+
+# --- the Python API -----------------------------------------------------------------------------------------
+
+def test_spec_parsing():
+    spec = parse_follower_spec("so101_follower:/dev/ttyACM0:id=left:calibration=/tmp/c:max_step=2.5")
+    assert (spec.port, spec.id, str(spec.calibration), spec.max_step_deg) == ("/dev/ttyACM0", "left", "/tmp/c", 2.5)
+    assert parse_follower_spec("so101_follower:/dev/ttyACM0").max_step_deg == 5.0
+    for bad in ("so101_follower", "koch_follower:/dev/x", "so101_follower:/dev/x:speed=3", "so101_follower:/dev/x:max_step=0"):
+        with pytest.raises(UsageError):
+            parse_follower_spec(bad)
+    with pytest.raises(UsageError, match="add --robot so101"):
+        check_pairing(spec, "ur5e")
+
+
+def test_missing_or_mismatched_calibration_names_lerobot_calibrate(tmp_path: Path):
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        session = Session("lift", "so101", seed=0)
+        names = session.controller.joint_names()
+        with pytest.raises(DeviceError, match=r"no calibration file .*lerobot-calibrate --robot.type=so101_follower "
+                                              rf"--robot.port={arm.port} --robot.id=other"):
+            Follower(parse_follower_spec(f"so101_follower:{arm.port}:id=other:calibration={cal}")).open(names)
+        arm.write_calibration_file(cal, "off", mismatch=True)
+        with pytest.raises(DeviceError, match=r"do not match the calibration .*lerobot-calibrate .*--robot.id=off"):
+            Follower(parse_follower_spec(f"so101_follower:{arm.port}:id=off:calibration={cal}")).open(names)
+        assert arm.goal_log() == [] and not any(w["value"] == 1 for w in arm.torque_log())
+
+
+def test_a_port_where_no_servo_answers_is_one_line(tmp_path: Path):
+    with FeetechEmulator.start(tmp_path, role="follower", ids=[]) as bus:
+        cal = tmp_path / "cal"
+        FeetechEmulator.write_calibration_file(bus, cal, ID)
+        started = time.monotonic()
+        with pytest.raises(DeviceError, match=rf"^{bus.port}: no servo answered \(ids 1-6\): is the follower powered"):
+            Follower(parse_follower_spec(spec_of(bus, cal))).open(("shoulder_pan", "shoulder_lift", "elbow_flex",
+                                                                   "wrist_flex", "wrist_roll"))
+        assert time.monotonic() - started < 10
+
+
+def _drive(session: Session, follower: Follower, until, what: str, commands=(), timeout_s: float = 30.0) -> None:
+    """Step the session in real time (the follower samples its targets at the control rate) until `until()`."""
+    deadline = time.monotonic() + timeout_s
+    while not until():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}; follower {follower.status()}"
+        session.step(list(commands))
+        time.sleep(session.dt)
+
+
+def test_resets_are_followed_at_max_step_with_torque_on_and_an_unplugged_arm_is_shown(tmp_path: Path):
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        session = Session("lift", "so101", seed=0, control_hz=30.0)
+        follower = open_follower(spec_of(arm, cal), session)
+        try:
+            assert follower.status()["state"] in ("connected", "catching up")
+            _drive(session, follower, lambda: follower.state == "catching up", "catching up")
+            _drive(session, follower, lambda: follower.state == "tracking", "tracking")
+            assert "follower: tracking, gap" in follower.line()
+            # drive the simulated arm far by joints, then reset to the next seed: the arm is home at once, the
+            # follower comes back at max_step
+            far = np.array([1.2, -0.8, 0.9, 0.2, 1.5])
+            _drive(session, follower, lambda: follower.state == "tracking" and follower.max_gap_deg < 2
+                   and abs(follower.targets()[0] - math.degrees(1.2)) < 1, "tracking the far pose", [Command(joints=far)])
+            session.reset()
+            _drive(session, follower, lambda: follower.state == "catching up", "catching up after the reset")
+            _drive(session, follower, lambda: follower.state == "tracking", "tracking after the reset")
+            assert not any(w["value"] == 0 for w in arm.torque_log() if w["t"] > goal_rows(arm)[0][0])  # torque stayed on
+            assert follower.status()["clamped"] == 0
+            # a cable pulled: shown, then the arm is followed again once it answers
+            arm.unplug()
+            _drive(session, follower, lambda: follower.state == "disconnected", "disconnected")
+            assert follower.status()["errors"] >= 1
+            arm.replug()
+            _drive(session, follower, lambda: follower.state == "tracking", "tracking after the replug")
+        finally:
+            follower.close()
+        assert_eased(arm, FAR)
+        assert_torque_off_at_end(arm)
+        follower.close()  # again: nothing more happens
+        assert follower.status()["state"] == "disconnected"
