@@ -150,6 +150,11 @@ class Judge:
         parts = [self._compile_bound(a, data) for a in sorted(node.args, key=_cost)]
         if len(parts) == 1:
             return parts[0]
+        if len(parts) == 2:
+            first, second = parts
+            if isinstance(node, And):
+                return lambda: first() and second()
+            return lambda: first() or second()
         if isinstance(node, And):
             return lambda: all(part() for part in parts)
         return lambda: any(part() for part in parts)

@@ -308,7 +308,8 @@ class Controller:
             arm.joint_hold = None  # an EE command: IK drives again, from the held joints (IK was reset to them)
         arm.target_pos = self.clamp_target(command.arm, pos)
         arm.target_quat = quat / size
-        self._apply_gripper(command, arm)
+        if command.gripper is not None:  # most ticks carry none
+            self._apply_gripper(command, arm)
 
     @staticmethod
     def _apply_gripper(command: Command, arm: ArmState) -> None:
