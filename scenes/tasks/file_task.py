@@ -229,8 +229,15 @@ class FileTask(Task):
             return None
         judge = self._judge_for(model)
         test = judge.bound(data) if isinstance(judge, Judge) else (lambda: judge(data))
-        timed, key = self._timed, id(data)
-        return lambda: timed(key, data.time, test())
+        timed, key, held = self._timed, id(data), self._held
+
+        def observe() -> bool:  # `_timed` with its usual case (not succeeding) inline: one call a tick
+            if not test():
+                held[key] = (data.time, None)
+                return False
+            return timed(key, data.time, True)
+
+        return observe
 
     # -- checking ----------------------------------------------------------------------------------------
     def _check(self) -> None:

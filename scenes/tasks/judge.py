@@ -152,6 +152,10 @@ class Judge:
             return parts[0]
         if len(parts) == 2:
             first, second = parts
+            cheap = sorted(node.args, key=_cost)[0]
+            if isinstance(node, And) and isinstance(cheap, Pred) and cheap.name == "lifted":  # the usual hold test
+                height, floor = self._lifted_parts(cheap, data)
+                return lambda: bool(height[2] > floor) and second()
             if isinstance(node, And):
                 return lambda: first() and second()
             return lambda: first() or second()
