@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from devices.lerobot_leader import connect_leader, make_leader, parse_leader_spec
+from devices.leader_connect import connect_leader, parse_leader_spec
+from devices.lerobot_leader import make_leader
 from teleop.control.follower import open_follower
 from teleop.control.session import Session
 from tests.servo_emulator import MOTOR_NAMES, FeetechEmulator, from_lerobot

@@ -19,7 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from devices.base import Device, DeviceError
-from devices.lerobot_leader import LeaderError, make_leader  # LeRobot itself is imported only when a leader starts
+from devices.leader_connect import LeaderError
+from devices.lerobot_leader import make_leader  # LeRobot itself is imported only when a leader starts
 
 
 @dataclass

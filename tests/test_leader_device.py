@@ -24,7 +24,8 @@ import pytest
 
 from devices.base import DeviceError
 from devices.joint_map import JointMapError, builtin_map_path, load_joint_map
-from devices.lerobot_leader import LeaderError, make_leader, parse_leader_spec
+from devices.leader_connect import LeaderError, parse_leader_spec
+from devices.lerobot_leader import make_leader
 from devices.registry import KNOWN_DEVICES, DeviceOptions, open_devices
 from devices.retarget import Retarget, to_base, to_world
 from replay.episode import load_episode

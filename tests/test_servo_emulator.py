@@ -44,7 +44,6 @@ from tests.support import ROOT, wait_until
 
 pytestmark = pytest.mark.e2e
 
-lerobot = pytest.importorskip("lerobot.motors.feetech", reason="needs the hardware extra: pip install -e '.[hardware]'")
 
 
 def so_leader(arm: FeetechEmulator, tmp_path, device_id: str = "leader"):
