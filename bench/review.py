@@ -31,8 +31,8 @@ from replay.render import rasterize_in_render_threads
 from replay.review.listing import make_row, store_row
 from replay.review.quality import scores
 from replay.review.video import VideoOptions, write_episodes
-from teleop.web.access import Gate
-from teleop.web.review_server import ReviewFolder, make_handler
+from teleop.web.shared.access import Gate
+from teleop.web.review_page.server import ReviewFolder, make_handler
 
 ROOT = Path(__file__).resolve().parent.parent
 LIST_SIZE = 1000

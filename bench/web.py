@@ -24,7 +24,7 @@ Figures (`measure`):
                          Chromium draws WebGL in software on the page's main thread, where keys wait
                          for the frame in progress; this is the input path without that. (With the
                          view shown the page gets teleop's software-WebGL view, as any browser without
-                         a GPU does: teleop/web/view_quality.py)
+                         a GPU does: teleop/web/session_page/view_quality.py)
 
 The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
 Moving the arm without a person: the session also runs a script device that sweeps the target.
@@ -62,9 +62,9 @@ def update_cost_ms(updates: int) -> float:
 
     from devices.command import Command
     from teleop.control.session import Session
-    from teleop.web.drawing import SceneDrawer
-    from teleop.web.sim_thread import SimThread
-    from teleop.web.viser_compat import WEBSOCKET_PROTOCOL
+    from teleop.web.session_page.drawing import SceneDrawer
+    from teleop.web.session_page.sim_thread import SimThread
+    from teleop.web.viser_internals.compat import WEBSOCKET_PROTOCOL
 
     class Sweep:
         name = kind = "sweep"
@@ -224,7 +224,7 @@ def key_latency(presses: int, hide_3d: bool = False) -> dict[str, float]:
     from playwright.sync_api import sync_playwright
 
     from teleop.control.session import Session
-    from teleop.web.app import WebApp
+    from teleop.web.session_page.app import WebApp
     from tests import browser as headless
 
     session = Session("lift", "panda", seed=0, control_hz=30)

@@ -109,10 +109,10 @@ def export_lerobot(
 
 
 def __getattr__(name: str):
-    """`teleop.web.serve` loads the browser server (viser, mjviser: 1-2 s) on first use, so
+    """`teleop.web.session_page.serve` loads the browser server (viser, mjviser: 1-2 s) on first use, so
     `import teleop` and the command line stay quick for everything that does not serve."""
     if name == "serve":
-        from teleop.web.serve import serve  # lazy: heavy, and only a browser session needs it
+        from teleop.web.session_page.serve import serve  # lazy: heavy, and only a browser session needs it
 
         return serve
     raise AttributeError(f"module 'teleop' has no attribute {name!r}")

@@ -485,7 +485,7 @@ def test_every_device_speaks_the_one_protocol(tmp_path):
     from devices.keyboard import KeyboardDevice
     from devices.script import ScriptDevice
     from devices.spacemouse import SpaceMouseDevice
-    from teleop.web.panel import PanelDevice
+    from teleop.web.session_page.panel import PanelDevice
 
     script = tmp_path / "s.json"
     script.write_text('{"steps": [{"duration": 0.1}]}')
@@ -530,7 +530,7 @@ def test_only_the_command_line_installs_signal_handlers(tmp_path):
     assert not found, "only teleop/cli/ installs signal handlers (teleop/cli/signals.py):\n" + "\n".join(found)
 
 
-VISER_COMPAT = Path("teleop") / "web" / "viser_compat.py"
+VISER_COMPAT = Path("teleop") / "web" / "viser_internals" / "compat.py"
 
 
 def viser_internals_touched(path: Path) -> list[str]:
@@ -589,7 +589,7 @@ def test_the_viser_internals_check_can_fail(tmp_path):
 
 
 def test_only_viser_compat_touches_viser_or_websockets_internals():
-    """Issue 19: viser's and websockets' internals are used in teleop/web/viser_compat.py only
+    """Issue 19: viser's and websockets' internals are used in teleop/web/viser_internals/compat.py only
     (tests/test_viser_contract.py checks them against the installed releases)."""
     found = [
         f"{path.relative_to(ROOT)}:{entry}"
@@ -598,5 +598,5 @@ def test_only_viser_compat_touches_viser_or_websockets_internals():
         if path.relative_to(ROOT) != VISER_COMPAT
         for entry in viser_internals_touched(path)
     ]
-    assert not found, "only teleop/web/viser_compat.py may use viser's or websockets' internals:\n" + "\n".join(found)
+    assert not found, "only teleop/web/viser_internals/compat.py may use viser's or websockets' internals:\n" + "\n".join(found)
     assert viser_internals_touched(ROOT / VISER_COMPAT)  # the check sees the internals where they are

@@ -9,10 +9,10 @@ import numpy as np
 
 from devices.command import Command
 from teleop.control.session import Session
-from teleop.web.camera_view import CameraFeed
-from teleop.web.cpu_pressure import cpu_pressure
-from teleop.web.panel import PanelDevice
-from teleop.web.sim_thread import SimThread
+from teleop.web.session_page.camera_view import CameraFeed
+from teleop.web.shared.cpu_pressure import cpu_pressure
+from teleop.web.session_page.panel import PanelDevice
+from teleop.web.session_page.sim_thread import SimThread
 
 
 def _wait(predicate, seconds: float = 20.0) -> None:

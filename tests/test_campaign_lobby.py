@@ -15,7 +15,7 @@ import pytest
 from teleop.campaign.file import load_campaign
 from teleop.campaign.ledger import issue_invites
 from teleop.campaign.lobby import JOIN_BURST, Lobby, start_lobby
-from teleop.web.access import TokenThrottle
+from teleop.web.shared.access import TokenThrottle
 
 ADMIN, JOIN = "admin-token-1", "join-token-1"
 

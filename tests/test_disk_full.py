@@ -131,7 +131,7 @@ def test_serve_keeps_driving_when_the_disk_fills(tmp_path):
     """The browser session: recording stops with the reason on the panel, the loop and the arm go on."""
     from devices.gizmo import GizmoDevice
     from teleop import Command, Recorder, Session
-    from teleop.web.app import WebApp
+    from teleop.web.session_page.app import WebApp
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

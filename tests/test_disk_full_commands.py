@@ -166,7 +166,7 @@ def test_convert_on_a_full_disk(sources, tmp_path):
 def test_replay_viewer_subtask_save_on_a_full_disk(sources, tmp_path):
     import viser
 
-    from teleop.web.replay_subtasks import SubtaskPanel
+    from teleop.web.replay_page.subtasks import SubtaskPanel
 
     with small_fs(tmp_path, 400, 200_000) as fs:
         path = fs.path / sources[0].name

@@ -246,3 +246,65 @@ def test_the_workspace_frame_picture_is_drawn_on_the_real_axes(tmp_path):
     assert miss < 2.0 and out.stat().st_size > 10_000
     for page in ("README.md", "docs/tasks.md"):
         assert "workspace_frame.png" in (ROOT / page).read_text()
+
+
+# -- the web folder's map ------------------------------------------------------------------------------------
+
+ROOMS_HEADING = "## The web folder's rooms"
+
+
+def rooms_map(text: str) -> dict[str, set[str]]:
+    """docs/layout.md's rooms table: room folder -> the files its rows name (`a.py`, `static/x.css`)."""
+    section = text.split(ROOMS_HEADING, 1)[1].split("\n## ", 1)[0]
+    rooms: dict[str, set[str]] = {}
+    room = ""
+    for line in section.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) < 3 or not line.startswith("|") or set(cells[0]) <= set("-") and cells[0]:
+            continue
+        if cells[0].startswith("`"):
+            room = cells[0].strip("`").rstrip("/")
+        if room:
+            rooms.setdefault(room, set()).update(m.group(2) for m in INLINE_CODE.finditer(cells[1]))
+    return rooms
+
+
+def rooms_on_disk(web: Path) -> dict[str, set[str]]:
+    """Each sub-package of teleop/web -> its files (not __init__.py, not caches), relative to it."""
+    return {
+        str(folder.relative_to(web.parent.parent)): {
+            str(f.relative_to(folder)) for f in folder.rglob("*")
+            if f.is_file() and f.name != "__init__.py" and "__pycache__" not in f.parts}
+        for folder in sorted(web.iterdir()) if folder.is_dir() and folder.name != "__pycache__"
+    }
+
+
+def map_differences(documented: dict[str, set[str]], tree: dict[str, set[str]]) -> list[str]:
+    bad = [f"{room}/ is not in docs/layout.md's rooms" for room in sorted(set(tree) - set(documented))]
+    bad += [f"{room}/ in docs/layout.md is not a folder" for room in sorted(set(documented) - set(tree))]
+    for room in sorted(set(tree) & set(documented)):
+        bad += [f"{room}/{name} is not in docs/layout.md" for name in sorted(tree[room] - documented[room])]
+        bad += [f"{room}/{name} in docs/layout.md does not exist" for name in sorted(documented[room] - tree[room])]
+    return bad
+
+
+def test_the_web_folders_map_matches_the_tree():
+    documented = rooms_map((ROOT / "docs" / "layout.md").read_text())
+    tree = rooms_on_disk(ROOT / "teleop" / "web")
+    assert {"teleop/web/session_page", "teleop/web/shared", "teleop/web/viser_internals"} <= set(tree)
+    flat = sorted(p.name for p in (ROOT / "teleop" / "web").iterdir() if p.is_file() and p.name != "__init__.py")
+    assert not flat, f"teleop/web/ keeps its modules in rooms, not flat: {flat}"
+    bad = map_differences(documented, tree)
+    assert not bad, "\n".join(bad)
+
+
+def test_the_map_check_can_fail(tmp_path):
+    web = tmp_path / "teleop" / "web"
+    (web / "room").mkdir(parents=True)
+    (web / "room" / "a.py").write_text("")
+    (web / "room" / "b.js").write_text("")
+    (web / "other").mkdir()
+    text = f"{ROOMS_HEADING}\n\n| room | module | holds |\n|---|---|---|\n| `teleop/web/room/` | `a.py` | a |\n| | `c.py` | c |\n"
+    bad = map_differences(rooms_map(text), rooms_on_disk(web))
+    assert bad == ["teleop/web/other/ is not in docs/layout.md's rooms", "teleop/web/room/b.js is not in docs/layout.md",
+                   "teleop/web/room/c.py in docs/layout.md does not exist"]

@@ -85,8 +85,8 @@ def test_a_new_scene_drops_the_targets_read_against_the_old_one(tmp_path: Path):
 
 
 def test_the_browser_loop_restarts_script_devices_on_every_new_scene(tmp_path: Path):
-    from teleop.web.panel import PanelDevice
-    from teleop.web.sim_thread import SimThread
+    from teleop.web.session_page.panel import PanelDevice
+    from teleop.web.session_page.sim_thread import SimThread
 
     session = Session("lift", robot="panda", seed=0, fresh_episodes=True)
     Recorder(session, tmp_path, verify="off")

@@ -46,7 +46,7 @@ def test_the_wheel_holds_every_file_of_the_packages(tmp_path):
     names = set(zipfile.ZipFile(wheel).namelist())
     missing = sorted(tracked_package_files() - names)
     assert not missing, "not in the wheel (add them to [tool.setuptools.package-data]):\n" + "\n".join(missing)
-    assert "teleop/web/phone.html" in names and "scenes/robots/panda.xml" in names  # the two that went missing once
+    assert "teleop/web/session_page/phone.html" in names and "scenes/robots/panda.xml" in names  # the two that went missing once
     assert not any(n.startswith(("tests/", "bench/")) for n in names)  # they stay in the checkout
 
 

@@ -280,8 +280,8 @@ def test_the_api_lists_and_records_verdicts_behind_the_token(short_folder):
     import urllib.request
     from http.server import ThreadingHTTPServer
 
-    from teleop.web.access import Gate
-    from teleop.web.review_server import ReviewFolder, make_handler
+    from teleop.web.shared.access import Gate
+    from teleop.web.review_page.server import ReviewFolder, make_handler
 
     token = "review-token-123"
     server = ThreadingHTTPServer(("127.0.0.1", 0), make_handler(ReviewFolder(short_folder), Gate(token, 0), "ana"))

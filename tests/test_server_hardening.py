@@ -28,9 +28,9 @@ import viser
 from replay.review import listing
 from teleop.campaign.file import load_campaign
 from teleop.campaign.lobby import Lobby, start_lobby
-from teleop.web.access import THROTTLE_BLOCK_S, Gate, local_host_header
-from teleop.web.review_server import ReviewFolder, make_handler
-from teleop.web.stdlib_http import READ_TIMEOUT_S, QuietServer
+from teleop.web.shared.access import THROTTLE_BLOCK_S, Gate, local_host_header
+from teleop.web.review_page.server import ReviewFolder, make_handler
+from teleop.web.shared.stdlib_http import READ_TIMEOUT_S, QuietServer
 from tests import browser as headless
 from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, CampaignProcess, campaign_session_status, run_cli, wait_until
 

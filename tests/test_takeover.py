@@ -26,8 +26,8 @@ from teleop.learn.gym_env import TeleopEnv
 from teleop.control.loop import run_episode
 from teleop.learn.policy import PolicyMismatch, ScriptedPolicy
 from teleop.learn.takeover import Takeover, moves_arm
-from teleop.web.app import STATUS_PERIOD_S
-from teleop.web.panel import PanelDevice
+from teleop.web.session_page.app import STATUS_PERIOD_S
+from teleop.web.session_page.panel import PanelDevice
 from tests.browser import free_port
 from tests.support import ROOT, assert_one_line_error, run_cli
 

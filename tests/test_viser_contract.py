@@ -1,6 +1,6 @@
 """The viser and websockets internals teleop relies on are there, in the installed releases.
 
-teleop/web/viser_compat.py is the one module that uses them; pyproject.toml pins viser
+teleop/web/viser_internals/compat.py is the one module that uses them; pyproject.toml pins viser
 to the minor versions this file passes on. When a release changes one, the failing
 test says what changed and which teleop feature it breaks, so that raising the pin is
 a matter of running this file (and fixing viser_compat.py where it fails).
@@ -30,8 +30,8 @@ import websockets.asyncio.server
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from teleop.web.page_devices import CONNECT_SPACEMOUSE
-from teleop.web.viser_compat import (
+from teleop.web.session_page.page_devices import CONNECT_SPACEMOUSE
+from teleop.web.viser_internals.compat import (
     FIXED_DPR_PARAM, GUI_BUTTON_SELECTOR, INDEX_PATHS, limit_message_size, run_javascript, with_head_script,
     wrapping_serve,
 )
@@ -56,7 +56,7 @@ SCENE_CANVAS = ("[...document.querySelectorAll('canvas')].filter((c) => c.width 
 def broken(what: str, breaks: str) -> str:
     """The failure message: what changed in the installed viser, and what of teleop's it breaks."""
     return (f"viser {viser.__version__} / websockets {websockets.__version__}: {what}. This breaks {breaks}. "
-            "Adapt teleop/web/viser_compat.py (the only place that relies on it) or keep the pin in pyproject.toml.")
+            "Adapt teleop/web/viser_internals/compat.py (the only place that relies on it) or keep the pin in pyproject.toml.")
 
 
 @dataclass(repr=False)  # a failing assert would print viser's page headers
@@ -130,7 +130,7 @@ def _get(url: str, **headers: str) -> tuple[dict, bytes]:
 def test_viser_starts_its_server_through_websockets_serve_which_we_wrap(served):
     assert served.starts, broken(
         "ViserServer() no longer starts its server by calling websockets.asyncio.server.serve at start",
-        "the session token, the Origin check and the page input channel (teleop.web.access refuses to start)")
+        "the session token, the Origin check and the page input channel (teleop.web.shared.access refuses to start)")
     assert len(served.passed) == 1
     handler, process_request = served.passed[0]
     assert callable(handler) and callable(process_request), broken(
@@ -304,7 +304,7 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
     import numpy as np
     from viser._assignable_props_api import AssignablePropsBase
 
-    from teleop.web.viser_compat import FLOAT_ARRAY_HINTS, quick_array_casts
+    from teleop.web.viser_internals.compat import FLOAT_ARRAY_HINTS, quick_array_casts
 
     original = getattr(AssignablePropsBase._cast_value_recursive, "original", AssignablePropsBase._cast_value_recursive)
     source = inspect.getsource(original)
@@ -345,8 +345,8 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
     from viser._messages import SceneNodeUpdateMessage
 
     import teleop
-    from teleop.web.body_poses import BodyPoses
-    from teleop.web.viser_compat import SceneStream
+    from teleop.web.session_page.body_poses import BodyPoses
+    from teleop.web.viser_internals.compat import SceneStream
 
     session = teleop.Session(scene="lift", robot="panda", seed=0)
     model = session.controller.model
@@ -469,7 +469,7 @@ def test_scene_stream_frames_are_viser_s_wire_format_after_the_nodes_and_whole_f
     import numpy as np
     from viser._messages import SceneNodeUpdateMessage
 
-    from teleop.web.viser_compat import SceneStream, serializable, set_arrays
+    from teleop.web.viser_internals.compat import SceneStream, serializable, set_arrays
 
     server = served.server
     axes = server.scene.add_batched_axes("/contract/stream_axes", batched_wxyzs=np.tile([1.0, 0, 0, 0], (2, 1)),

@@ -22,7 +22,7 @@ from websockets.http11 import Request
 from websockets.datastructures import Headers
 
 from teleop.errors import UsageError
-from teleop.web.access import (
+from teleop.web.shared.access import (
     TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token, with_head_script,
 )
 from tests import browser as headless

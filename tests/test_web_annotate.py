@@ -16,7 +16,7 @@ import pytest
 
 from replay.subtasks.sidecar import Subtask, sidecar_path
 from replay.subtasks.edit import EditRefused, SubtaskEdits, even_split
-from teleop.web.replay_subtasks import step_from_browser, timeline_html
+from teleop.web.replay_page.subtasks import step_from_browser, timeline_html
 from tests import browser as headless
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import pytest
 from devices.gizmo import SETTLE_S, GizmoDevice
 from devices.registry import DeviceOptions, make_device
 from teleop.errors import UsageError
-from teleop.web.net import check_port_free, exposure_warning, is_loopback, page_url
+from teleop.web.shared.net import check_port_free, exposure_warning, is_loopback, page_url
 
 
 def test_gizmo_hands_over_only_the_newest_pose_once():
@@ -83,7 +83,7 @@ def test_host_checks():
 def test_served_loop_runs_in_real_time_and_records(tmp_path):
     """The WebApp in-process, no browser: real-time loop, panel commands, save, exact replay check."""
     from teleop import Command, Recorder, Session
-    from teleop.web.app import WebApp
+    from teleop.web.session_page.app import WebApp
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -117,7 +117,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
 
 def test_speed_sliders_set_keyboard_and_spacemouse_speeds():
     from teleop.control.session import Session
-    from teleop.web.app import WebApp
+    from teleop.web.session_page.app import WebApp
 
     class HoldToMove:
         """Stands in for the keyboard: what the sliders change is its speeds."""

@@ -25,8 +25,8 @@ import viser
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from teleop.web.access import TOKEN_ENV, TOKEN_PATTERN
-from teleop.web.net import exposure_warning, page_url, remote_hint
+from teleop.web.shared.access import TOKEN_ENV, TOKEN_PATTERN
+from teleop.web.shared.net import exposure_warning, page_url, remote_hint
 from tests import browser as headless
 from tests.support import ROOT, assert_one_line_error, run_cli
 
@@ -51,7 +51,7 @@ def test_the_page_url_brackets_ipv6_and_names_a_loopback_for_wildcards():
 
 
 def test_the_viewer_s_warning_says_what_it_exposes():
-    from teleop.web.replay_viewer import VIEWER_REACH
+    from teleop.web.replay_page.viewer import VIEWER_REACH
 
     warning = exposure_warning("0.0.0.0", 8080, VIEWER_REACH)
     assert warning.startswith("warning: --no-token") and "subtask file" in warning and "\n" not in warning

@@ -5,7 +5,7 @@
 - annotate.py: boundaries found from what the episode recorded (gripper events and contacts),
   `annotate` for the `teleop annotate` command, and how far a rollout got (`progress_of`).
 - edit.py: hand edits that keep the subtasks contiguous (the replay viewer's Subtasks panel,
-  teleop/web/replay_subtasks.py, is the page over it).
+  teleop/web/replay_page/subtasks.py, is the page over it).
 
 Nothing is re-exported here: replay/episode.py reads the sidecar, and annotate.py reads episodes,
 so importing the modules by name keeps the two from running into each other.

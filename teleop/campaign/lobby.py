@@ -10,7 +10,7 @@
 
 Every request brings its token in the query (the pages pass on the one in their own
 URL); after 10 wrong tokens in a second from one address, its requests carrying a token get
-429 for 5 s, unchecked (teleop.web.access.TokenThrottle). The stylesheet (/static/teleop.css)
+429 for 5 s, unchecked (teleop.web.shared.access.TokenThrottle). The stylesheet (/static/teleop.css)
 needs no token. Anything wrong is a 4xx with {"error": one line}: a missing or wrong token (403),
 malformed JSON or a bad name (400), a body over 4 kB (413), a name already in a live
 session (409), joins faster than JOIN_RATE a second (429), joining paused (503), the
@@ -32,9 +32,9 @@ from scenes.errors import TeleopError, first_line
 from teleop.campaign.file import Campaign, CampaignTask, check_operator_name
 from teleop.campaign.ledger import count_task, hourly_successes, invited, load_invites
 from teleop.campaign.sessions import LiveSession, Sessions
-from teleop.web.access import Gate
-from teleop.web.input_channel import PATH as INPUT_PATH
-from teleop.web.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused, TokenRefused
+from teleop.web.shared.access import Gate
+from teleop.web.session_page.input_channel import PATH as INPUT_PATH
+from teleop.web.shared.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused, TokenRefused
 
 MAX_BODY = 4096  # bytes of a request body
 JOIN_RATE, JOIN_BURST = 20.0, 40.0  # joins a second, and the burst allowed, over all clients

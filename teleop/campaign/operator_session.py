@@ -89,7 +89,7 @@ class SessionStatus:
 
     @classmethod
     def from_serve(cls, status: Mapping) -> "SessionStatus":
-        """The typed status from `teleop serve`'s status dict (teleop.web.app.WebApp.status)."""
+        """The typed status from `teleop serve`'s status dict (teleop.web.session_page.app.WebApp.status)."""
         rest = {k: v for k, v in status.items() if k not in _STATUS_FIELDS}
         return cls(port=int(status["port"]), pid=int(status["pid"]), tick=int(status["tick"]),
                    wall_time=float(status["wall_time"]), seed=int(status["seed"]), recording=bool(status["recording"]),

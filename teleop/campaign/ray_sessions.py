@@ -24,7 +24,7 @@ from pathlib import Path
 from scenes.workers.cluster import ClusterError, connect_ray
 from teleop.campaign.operator_session import SessionSpec
 from teleop.campaign.session_files import SessionFiles, open_private_log, private_folder
-from teleop.web.net import is_loopback
+from teleop.web.shared.net import is_loopback
 
 START_TIMEOUT_S = 60.0  # an actor waits this long for a free CPU on the cluster
 

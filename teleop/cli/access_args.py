@@ -1,6 +1,6 @@
 """The listening and access flags of every command that serves a page (`serve`, `replay --serve`, `review`).
 
-What they mean at run time is teleop.web.access's (`resolve_token`, the Gate); here they are declared once.
+What they mean at run time is teleop.web.shared.access's (`resolve_token`, the Gate); here they are declared once.
 """
 
 from __future__ import annotations

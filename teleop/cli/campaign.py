@@ -41,7 +41,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _token(value: str | None, flag: str) -> str:
-    from teleop.web.access import TOKEN_PATTERN
+    from teleop.web.shared.access import TOKEN_PATTERN
 
     if value is None:
         return secrets.token_urlsafe(18)
@@ -54,7 +54,7 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     from teleop.campaign.file import load_campaign
     from teleop.campaign.ledger import issue_invites
     from teleop.campaign.lobby import Lobby, start_lobby
-    from teleop.web.net import check_port_free, page_url, remote_hint
+    from teleop.web.shared.net import check_port_free, page_url, remote_hint
 
     admin_token, join_token = _token(args.token, "--token"), _token(args.join_token, "--join-token")
     if admin_token == join_token:

@@ -54,7 +54,7 @@ def watch_lifeline(stop: threading.Event) -> None:
 
 def run(spec: SessionSpec, stop: threading.Event) -> int:
     from replay.render import rasterize_in_render_threads
-    from teleop.web.serve import serve  # viser: imported once the spec is read
+    from teleop.web.session_page.serve import serve  # viser: imported once the spec is read
 
     rasterize_in_render_threads()  # the page's camera picture renders in a thread of its own: no llvmpipe threads
 

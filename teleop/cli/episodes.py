@@ -118,7 +118,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise UsageError("--token and --no-token are for the viewer: add --serve")
     token = None
     if args.serve:
-        from teleop.web.access import resolve_token
+        from teleop.web.shared.access import resolve_token
 
         token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     episode = _load(args.path)
@@ -128,7 +128,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.serve:
         try:
-            from teleop.web.replay_viewer import serve_episode
+            from teleop.web.replay_page.viewer import serve_episode
         except ImportError as exc:
             raise UsageError(f"the episode viewer is not available: {exc}") from None
         # Ctrl-C and SIGTERM stop the viewer, even when started with SIGINT ignored (as a background job).

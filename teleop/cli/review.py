@@ -2,7 +2,7 @@
 
 `video` renders episodes from their exact replay into an MP4 or GIF with the
 overlay strip (replay.review.video); `review` serves one page for a folder of
-episodes where verdicts are recorded (teleop.web.review_server). Errors a user
+episodes where verdicts are recorded (teleop.web.review_page.server). Errors a user
 can cause (no episode, a camera the episode lacks, an unwritable path, a full
 disk) end as one line and exit code 2.
 """
@@ -73,8 +73,8 @@ def cmd_video(args: argparse.Namespace) -> int:
 
 def cmd_review(args: argparse.Namespace) -> int:
     from replay.render import rasterize_in_render_threads
-    from teleop.web.access import resolve_token
-    from teleop.web.review_server import serve_review
+    from teleop.web.shared.access import resolve_token
+    from teleop.web.review_page.server import serve_review
 
     rasterize_in_render_threads()  # videos and thumbnails render in the page's request threads
 

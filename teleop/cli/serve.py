@@ -42,13 +42,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from teleop.web.access import resolve_token
+    from teleop.web.shared.access import resolve_token
 
     token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
     # Lazy: the browser server (viser, mjviser) takes 1-2 s to import; only this command needs it.
-    from teleop.web.serve import asks_for_keyboard, serve
-    from teleop.web.camera_view import warm_up
-    from teleop.web.net import check_port_free
+    from teleop.web.session_page.serve import asks_for_keyboard, serve
+    from teleop.web.session_page.camera_view import warm_up
+    from teleop.web.shared.net import check_port_free
 
     warm_up()  # find a GL backend for the camera picture while the scene compiles
     check_port_free(args.host, args.port)  # before the slow part, so a taken port fails at once

@@ -1,8 +1,12 @@
-"""Browser teleoperation: `teleop serve` (WebApp) and the replay viewer, on viser + mjviser.
+"""The browser pages, one sub-package (room) each, and what they share.
 
-Modules: net (host/port checks), access (the token gate both servers start behind), sim_thread (the real-time control loop and
-its snapshots), drawing (3D scene, markers, gizmos), camera_view (offscreen
-camera picture), panel (buttons and figures), app (wiring and status), replay_viewer and
-replay_subtasks (`teleop replay EP --serve`), viser_compat (the only user of viser's and
-websockets' internals, checked by tests/test_viser_contract.py).
+- session_page/: `teleop serve` (serve, WebApp): the real-time sim thread, the 3D scene drawn on
+  viser, the camera picture, the panel, the page's keys and devices over the input channel, the
+  phone page; their scripts (page_input.js, page_devices.js, phone.html).
+- replay_page/: `teleop replay EP --serve`: the replay viewer and its Subtasks panel.
+- review_page/: `teleop review`: the review page (a stdlib HTTP server), review.html and review.js.
+- shared/: what every page uses: the access gate (token, loopback Host rule, throttle), host and
+  port checks, the stdlib HTTP server's parts, the stylesheet, the loop thread and CPU pressure.
+- viser_internals/: the only code that uses viser's, mjviser's or websockets' private names
+  (tests/test_architecture.py checks it; tests/test_viser_contract.py checks them against the releases).
 """

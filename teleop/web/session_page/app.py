@@ -31,24 +31,24 @@ from devices.keyboard import KeyboardDevice
 from replay import VerifyResult
 from teleop.errors import UsageError
 from teleop.control.session import Session
-from teleop.web.access import Gate, start_guarded, url_with_token
-from teleop.web.camera_view import IMAGE_SIZE, CameraFeed
-from teleop.web.drawing import SceneDrawer
-from teleop.web.input_channel import PATH as INPUT_PATH
-from teleop.web.input_channel import InputChannel
-from teleop.web.net import check_port_free, page_url
-from teleop.web.page_devices import PageInputs
-from teleop.web.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
-from teleop.web.panel import Panel, PanelDevice
-from teleop.web.sim_thread import SimThread, Snapshot
-from teleop.web.view_quality import head_script, simplify
-from teleop.web.viser_compat import run_javascript
+from teleop.web.shared.access import Gate, start_guarded, url_with_token
+from teleop.web.session_page.camera_view import IMAGE_SIZE, CameraFeed
+from teleop.web.session_page.drawing import SceneDrawer
+from teleop.web.session_page.input_channel import PATH as INPUT_PATH
+from teleop.web.session_page.input_channel import InputChannel
+from teleop.web.shared.net import check_port_free, page_url
+from teleop.web.session_page.page_devices import PageInputs
+from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
+from teleop.web.session_page.panel import Panel, PanelDevice
+from teleop.web.session_page.sim_thread import SimThread, Snapshot
+from teleop.web.session_page.view_quality import head_script, simplify
+from teleop.web.viser_internals.compat import run_javascript
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
     from teleop.learn.takeover import Takeover
 
 STATUS_PERIOD_S = 0.2
-PHONE_PATH = "/phone"  # the phone page (teleop/web/phone.html), served beside viser's
+PHONE_PATH = "/phone"  # the phone page (teleop/web/session_page/phone.html), served beside viser's
 
 
 class WebApp:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop.web.viser_compat import send_updates, set_arrays
+from teleop.web.viser_internals.compat import send_updates, set_arrays
 
 
 class BodyPoses:
@@ -54,7 +54,7 @@ class BodyPoses:
 
     def update(self, data) -> None:
         """data: an MjData; or, when `entries` is not None, anything holding an MjData's xpos, xquat, mocap_pos
-        and mocap_quat (teleop.web.sim_thread.Snapshot)."""
+        and mocap_quat (teleop.web.session_page.sim_thread.Snapshot)."""
         if self.entries is None:
             self.scene.update_from_mjdata(data)
             return

@@ -4,7 +4,7 @@ viser would listen on every interface and quietly move to the next port if
 the one asked for is taken; an operator then opens the wrong page or exposes
 a robot to the network without meaning to. So the host is always passed on,
 a taken port is an error, and a host other than loopback needs a token
-(teleop.web.access) or, with --no-token, gets a warning. Both servers (the
+(teleop.web.shared.access) or, with --no-token, gets a warning. Both servers (the
 teleop session and the replay viewer) check here.
 """
 

@@ -17,9 +17,9 @@ from devices.base import Device
 from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
 from scenes.workers import shielded
 from teleop.control.session import Session
-from teleop.web.access import resolve_token
-from teleop.web.app import STATUS_PERIOD_S, WebApp
-from teleop.web.net import check_port_free, exposure_warning, remote_hint
+from teleop.web.shared.access import resolve_token
+from teleop.web.session_page.app import STATUS_PERIOD_S, WebApp
+from teleop.web.shared.net import check_port_free, exposure_warning, remote_hint
 
 if TYPE_CHECKING:  # annotations only
     from teleop.control.follower import Follower

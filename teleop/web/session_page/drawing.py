@@ -1,7 +1,7 @@
 """The 3D view: the MuJoCo scene, target and actual end-effector markers, and the gizmos.
 
 The camera and the markers (`place_camera`, `Markers`) are shared with the
-replay viewer (teleop.web.replay_viewer), so a recorded episode looks as it
+replay viewer (teleop.web.replay_page.viewer), so a recorded episode looks as it
 did live.
 
 Drawing never reads the physics MjData: it draws the body poses of the latest
@@ -35,9 +35,9 @@ import trimesh
 import viser
 from mjviser import ViserMujocoScene
 
-from teleop.web.sim_thread import SimThread, Snapshot
-from teleop.web.body_poses import BodyPoses
-from teleop.web.viser_compat import SceneStream, quick_array_casts, set_arrays
+from teleop.web.session_page.sim_thread import SimThread, Snapshot
+from teleop.web.session_page.body_poses import BodyPoses
+from teleop.web.viser_internals.compat import SceneStream, quick_array_casts, set_arrays
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)

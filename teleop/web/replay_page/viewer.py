@@ -5,13 +5,13 @@ restoring its recorded state (mj_setState + mj_kinematics, nothing is
 re-simulated), so what you scrub through is exactly what was recorded. The
 target and actual end-effector poses are drawn as in the live session.
 The episode's subtasks are drawn under the timeline and edited and saved in
-the Subtasks folder (teleop/web/replay_subtasks.py).
+the Subtasks folder (teleop/web/replay_page/subtasks.py).
 
-The viewer serves behind the session's gate (teleop.web.access): a token off
+The viewer serves behind the session's gate (teleop.web.shared.access): a token off
 loopback, HTTP 403 and refused websockets without it, the per-port cookie and
 the Origin check. Its page can write the subtask file, and it does so only from
 a panel event, which arrives over viser's websocket and so past that gate.
-Camera and markers are the live session's (teleop.web.drawing).
+Camera and markers are the live session's (teleop.web.session_page.drawing).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ import mujoco
 
 from replay.episode import Episode, EpisodeError
 from teleop.errors import UsageError
-from teleop.web.access import Gate, announce, resolve_token, start_guarded
-from teleop.web.drawing import Markers, place_camera
-from teleop.web.net import check_port_free
-from teleop.web.replay_subtasks import SubtaskPanel
-from teleop.web.viser_compat import quick_array_casts
+from teleop.web.shared.access import Gate, announce, resolve_token, start_guarded
+from teleop.web.session_page.drawing import Markers, place_camera
+from teleop.web.shared.net import check_port_free
+from teleop.web.replay_page.subtasks import SubtaskPanel
+from teleop.web.viser_internals.compat import quick_array_casts
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
 VIEWER_REACH = "see this episode and overwrite its subtask file"  # for the --no-token warning
@@ -151,7 +151,7 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080, t
     token, set on Ctrl-C and SIGTERM); returns 0. A user error (bad token or port, empty episode)
     raises UsageError.
 
-    token / no_token: as for `teleop serve` (teleop.web.access.resolve_token): a token is
+    token / no_token: as for `teleop serve` (teleop.web.shared.access.resolve_token): a token is
     required off loopback (random unless given or in TELEOP_TOKEN), and the printed URL carries it.
     """
     import viser

@@ -12,7 +12,7 @@ value must be one of its options, a step a whole number inside the episode),
 and a refused edit says why in the panel: nothing raises into viser's threads.
 The file is written only on the Save button's click from a page: an event that
 came over viser's websocket, which the viewer serves behind the token gate
-(teleop.web.access, teleop.web.replay_viewer).
+(teleop.web.shared.access, teleop.web.replay_page.viewer).
 """
 
 from __future__ import annotations

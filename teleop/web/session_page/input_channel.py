@@ -8,7 +8,7 @@ MAX_FRAME close it), at most RATE per second (with a burst of BURST), and
 there are at most MAX_CONNECTIONS at once. Every message is validated
 (`input_messages.parse`); one that fails, or comes too fast, is dropped and
 counted, and the connection carries on. The token rule and an Origin check
-are applied before the handshake (teleop.web.access).
+are applied before the handshake (teleop.web.shared.access).
 
 Handlers run on viser's event loop thread; the listener's methods are called
 there, one message at a time, and must only update thread-safe state (the
@@ -32,8 +32,8 @@ from typing import Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from teleop.web.input_messages import InputMessage, Rejected, parse
-from teleop.web.viser_compat import limit_message_size
+from teleop.web.session_page.input_messages import InputMessage, Rejected, parse
+from teleop.web.viser_internals.compat import limit_message_size
 
 PATH = "/teleop/input"
 MAX_FRAME = 64 * 1024  # bigger frames close the connection (websockets' limit; code 1009)

@@ -17,13 +17,13 @@ from collections.abc import Callable
 import numpy as np
 
 from scenes.errors import first_line
-from teleop.web.cpu_pressure import cpu_pressure
-from teleop.web.loop_thread import LoopThread
+from teleop.web.shared.cpu_pressure import cpu_pressure
+from teleop.web.shared.loop_thread import LoopThread
 
 IMAGE_SIZE = (192, 144)  # width, height
 FRAME_HZ = 4.0
 STILL_EPS = 1e-4  # m (and quaternion units): bodies that moved less than this since the last picture change no pixel
-# When the machine's CPUs are crowded (teleop.web.cpu_pressure: some task waited for a CPU this share of the last
+# When the machine's CPUs are crowded (teleop.web.shared.cpu_pressure: some task waited for a CPU this share of the last
 # ~10 s), the picture comes at BUSY_HZ: the control loop and the 3D view need the cores more than a thumbnail does.
 BUSY_PRESSURE = 50.0  # %
 BUSY_HZ = 1.0

@@ -31,7 +31,7 @@ from scenes.errors import first_line
 from teleop.control.controller import StepResult
 from teleop.control.loop import Pacer, Steer, newest_input_time, poll_devices, run_episode
 from teleop.control.session import Session
-from teleop.web.loop_thread import LoopThread
+from teleop.web.shared.loop_thread import LoopThread
 
 RATE_WINDOW_S = 1.0
 

@@ -32,8 +32,8 @@ import json
 
 import viser
 
-from teleop.web.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
-from teleop.web.viser_compat import FIXED_DPR_PARAM
+from teleop.web.session_page.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
+from teleop.web.viser_internals.compat import FIXED_DPR_PARAM
 
 LIGHT_NAME = "/teleop/software_view_light"
 LIGHT_INTENSITY = 2.0
@@ -41,7 +41,7 @@ SOFTWARE_DPR = 0.5  # device pixels per CSS pixel of the 3D view in a software-W
 
 # The renderer names viser's own "Software WebGL rendering detected" warning checks.
 _HEAD = """<script>
-(() => {  // teleop: a browser drawing WebGL without a GPU gets a lighter 3D view (teleop/web/view_quality.py)
+(() => {  // teleop: a browser drawing WebGL without a GPU gets a lighter 3D view (teleop/web/session_page/view_quality.py)
   let software = false;
   try {
     const canvas = document.createElement("canvas");

@@ -53,7 +53,7 @@ class Hello:
 @dataclass(frozen=True)
 class View:
     client: int | None  # viser's client id of the page
-    software_gl: bool  # WebGL drawn by a CPU renderer (SwiftShader, llvmpipe): teleop/web/view_quality.py
+    software_gl: bool  # WebGL drawn by a CPU renderer (SwiftShader, llvmpipe): teleop/web/session_page/view_quality.py
 
 
 @dataclass(frozen=True)

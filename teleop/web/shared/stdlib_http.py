@@ -6,7 +6,7 @@ one thread, never the server. `GatedHandler` gives them, once:
   `READ_TIMEOUT_S` of its first byte being awaited, so a client that sends nothing, or a
   byte a second, is dropped (a per-read socket timeout alone would let a byte a second
   hold a thread for ever);
-- the checks of teleop.web.access: the loopback Host rule of a server open on loopback
+- the checks of teleop.web.shared.access: the loopback Host rule of a server open on loopback
   (DNS rebinding), and the wrong-token throttle (429, the token unchecked);
 - JSON bodies with a size limit, answers as JSON, errors as `{"error": one line}`
   (`Refused`);
@@ -28,7 +28,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from teleop.web.access import FORBIDDEN_TOKEN, TOO_MANY, Gate, not_local_message
+from teleop.web.shared.access import FORBIDDEN_TOKEN, TOO_MANY, Gate, not_local_message
 
 READ_TIMEOUT_S = 10.0  # s for a whole request to arrive, from the moment the server starts reading it
 STYLESHEET_PATH = "/static/teleop.css"

@@ -17,9 +17,9 @@ import viser
 
 from devices.command import Command
 from devices.gamepad import MAPPING as GAMEPAD_MAPPING
-from teleop.web.loop_thread import LoopThread
-from teleop.web.page_devices import CONNECT_SPACEMOUSE
-from teleop.web.page_keyboard import PageKeyboardDevice
+from teleop.web.shared.loop_thread import LoopThread
+from teleop.web.session_page.page_devices import CONNECT_SPACEMOUSE
+from teleop.web.session_page.page_keyboard import PageKeyboardDevice
 
 REFRESH_HZ = 4.0
 POS_SPEED_RANGE = (0.01, 0.5)  # m/s
@@ -70,7 +70,7 @@ class Panel(LoopThread):
     def __init__(
         self,
         server: viser.ViserServer,
-        app,  # teleop.web.app.WebApp: sim, drawer, devices, problems, figures
+        app,  # teleop.web.session_page.app.WebApp: sim, drawer, devices, problems, figures
         cameras: tuple[str, ...],
         pos_speed: float,
         rot_speed: float,

@@ -13,10 +13,10 @@ breaks one:
   `websockets.asyncio.server.serve(handler, host, port, ..., process_request=...)`,
   looked up at call time; while the context is open that function lets us change
   the handler and `process_request` (the token gate and the input channel's route,
-  teleop.web.access), so viser's own serving code runs unchanged behind them.
+  teleop.web.shared.access), so viser's own serving code runs unchanged behind them.
 - `INDEX_PATHS`, `with_head_script`: viser answers its page (its
   `client/build/index.html`, one `<head>`) at `/`, gzipped when the browser accepts
-  gzip; a script of ours goes first in that `<head>` (teleop.web.view_quality).
+  gzip; a script of ours goes first in that `<head>` (teleop.web.session_page.view_quality).
 - `FIXED_DPR_PARAM`: the URL query parameter viser's client reads when it starts,
   the canvas' device pixels per CSS pixel.
 - `GUI_BUTTON_SELECTOR`: a GUI button from `gui.add_button(label)` is a `<button>`
@@ -55,7 +55,7 @@ breaks one:
   private copy queued: `AssignablePropsBase`'s `props_setattr`), for several of one
   node's properties at once and without its per-call type checks: one message.
 - `send_updates`: a node's updates into the open block, or to viser as one message
-  (`teleop.web.body_poses.BodyPoses` sets mjviser's body handles through it).
+  (`teleop.web.session_page.body_poses.BodyPoses` sets mjviser's body handles through it).
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ r reject, n note). Scripts use the same API:
   "note": text}`: records a verdict in the episode's sidecar (replay.review.verdicts).
 
 No viser here: a list and a <video> need a small threaded stdlib server
-(teleop.web.stdlib_http, shared with the campaign lobby: read deadline, JSON, Range). It
-sits behind the same gate as `teleop serve` and the replay viewer (teleop.web.access):
+(teleop.web.shared.stdlib_http, shared with the campaign lobby: read deadline, JSON, Range). It
+sits behind the same gate as `teleop serve` and the replay viewer (teleop.web.shared.access):
 a token off loopback (query or the per-port cookie), the loopback Host rule on an open
 loopback server, the wrong-token throttle, and a POST from another site's page (its
 Origin is not this server) is refused.
@@ -36,9 +36,9 @@ from replay.review import listing
 from replay.review.verdicts import VERDICTS, write_verdict
 from scenes.errors import TeleopError, first_line
 from teleop.errors import UsageError
-from teleop.web.access import FORBIDDEN_TOKEN, Gate, announce, resolve_token, same_origin
-from teleop.web.net import check_port_free
-from teleop.web.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused
+from teleop.web.shared.access import FORBIDDEN_TOKEN, Gate, announce, resolve_token, same_origin
+from teleop.web.shared.net import check_port_free
+from teleop.web.shared.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused
 
 HERE = Path(__file__).resolve().parent
 PAGES = {"/": ("review.html", "text/html; charset=utf-8"), "/review.js": ("review.js", "text/javascript; charset=utf-8")}

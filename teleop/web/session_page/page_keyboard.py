@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from devices.keyboard import KeyboardDevice
-from teleop.web.input_channel import PATH
-from teleop.web.input_messages import Hello, InputMessage, Key, ReleaseAll, browser_keys
+from teleop.web.session_page.input_channel import PATH
+from teleop.web.session_page.input_messages import Hello, InputMessage, Key, ReleaseAll, browser_keys
 
 SCRIPT = Path(__file__).with_name("page_input.js")
 

@@ -2,7 +2,7 @@
 //
 // viser runs this with `new Function(source)()` (RunJavascriptMessage), once per
 // connection of its own socket, so again after a reconnect; the server prepends
-// `const CONFIG = {path, keys, client}` (teleop/web/page_keyboard.py).
+// `const CONFIG = {path, keys, client}` (teleop/web/session_page/page_keyboard.py).
 // The first run installs the listeners; later runs only pass the new CONFIG on.
 //
 // Only bound keys are caught, in the capture phase on window, so viser's own
@@ -57,7 +57,7 @@
     if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
   };
   // Whether this browser draws WebGL on the CPU (no GPU, or acceleration off), as the script first in the
-  // page found out (teleop/web/view_quality.py): the server then gives this page a view a CPU draws quickly.
+  // page found out (teleop/web/session_page/view_quality.py): the server then gives this page a view a CPU draws quickly.
   const isSoftwareGl = () => window.__teleopSoftwareGl === true;
   const hello = () => {
     send({ type: "hello", client: config.client, agent: navigator.userAgent.slice(0, 200) });
