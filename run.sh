@@ -113,7 +113,11 @@ case "$first" in
             "$VENV/bin/ruff" check . || { echo "run.sh: ruff check found problems (above)" >&2; checks=1; }
             bash .ci/wheel_check.sh "$VENV/bin/python" || { echo "run.sh: the wheel check failed (above)" >&2; checks=1; }
         fi
-        "$VENV/bin/python" -m pytest "$@"
+        # On pytest-xdist workers (tests/conftest.py keeps them apart: ports from the OS, their own folders and Ray);
+        # TELEOP_TEST_WORKERS=0 runs in one process. loadgroup keeps the tests that share a file's module-scoped
+        # fixture (a served page, a dataset) on one worker; the rest go to whichever worker is free, in the order
+        # tests/suite_time.py gives them (unit tests first).
+        "$VENV/bin/python" -m pytest -n "${TELEOP_TEST_WORKERS:-3}" --dist loadgroup --no-loadscope-reorder "$@"
         rc=$?
         set -e
         if [ "$rc" = 5 ]; then echo "run.sh: pytest collected no tests: that is a failure" >&2; exit 1; fi

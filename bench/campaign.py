@@ -65,7 +65,8 @@ async def watcher(url: str, stop: asyncio.Event) -> None:
     """A page that takes every message viser sends and draws nothing."""
     from websockets.asyncio.client import connect
 
-    from teleop.web.viser_internals.compat import WEBSOCKET_PROTOCOL, viewer_camera_message
+    from teleop.web.viser_internals.page_script import viewer_camera_message
+    from teleop.web.viser_internals.serving_hooks import WEBSOCKET_PROTOCOL
 
     async with connect(url, subprotocols=[WEBSOCKET_PROTOCOL], open_timeout=120, max_size=None) as ws:
         await ws.send(viewer_camera_message())  # as a page's view does when it opens: now a client of the scene

@@ -64,7 +64,8 @@ def update_cost_ms(updates: int) -> float:
     from teleop.control.session import Session
     from teleop.web.session_page.drawing import SceneDrawer
     from teleop.web.session_page.sim_thread import SimThread
-    from teleop.web.viser_internals.compat import WEBSOCKET_PROTOCOL
+    from teleop.web.viser_internals import install
+    from teleop.web.viser_internals.serving_hooks import WEBSOCKET_PROTOCOL
 
     class Sweep:
         name = kind = "sweep"
@@ -79,6 +80,7 @@ def update_cost_ms(updates: int) -> float:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    install()  # viser's patches, as an app's start installs them (teleop.web.shared.access.start_guarded)
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
     page = connect(f"ws://127.0.0.1:{port}", subprotocols=[WEBSOCKET_PROTOCOL], max_size=None)
 
@@ -225,10 +227,11 @@ def key_latency(presses: int, hide_3d: bool = False) -> dict[str, float]:
 
     from teleop.control.session import Session
     from teleop.web.session_page.app import WebApp
+    from teleop.web.session_page.serve_options import ServeOptions
     from tests import browser as headless
 
     session = Session("lift", "panda", seed=0, control_hz=30)
-    app = WebApp(session, [], [], port=headless.free_port(), camera=False, page_keyboard=True, log=lambda line: None)
+    app = WebApp(session, [], [], ServeOptions(port=headless.free_port(), page_keyboard=True), camera=False, log=lambda line: None)
     keyboard = app.page_keys.keyboard
     applied: list[float] = []
     poll = keyboard.poll

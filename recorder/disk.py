@@ -15,6 +15,7 @@ import errno
 import os
 import re
 import shutil
+import tempfile
 from pathlib import Path
 
 from scenes.errors import TeleopError, first_line
@@ -77,24 +78,36 @@ def write_failure_in(exc: BaseException) -> OSError | None:
     return None
 
 
-def write_bytes_whole(path: str | Path, data: bytes) -> Path:
+def write_bytes_whole(path: str | Path, data: bytes, shared: bool = False) -> Path:
     """Write `data` to `path` through `path.part` and a rename: a kill or a full disk never leaves a
-    half file under the name; on an error the .part is removed and a WriteError raised."""
+    half file under the name; on an error the .part is removed and a WriteError raised.
+
+    shared: other writers (threads, processes) may write the same file at once, so each writes a
+    temporary file of its own (`<name>.<random>.part`, private to its owner as mkstemp makes it) and the
+    last rename wins whole."""
     path = Path(path)
-    tmp = path.with_name(path.name + PART)
+    tmp: Path | None = None
     try:
-        tmp.write_bytes(data)
+        if shared:
+            fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=PART)
+            tmp = Path(name)
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+        else:
+            tmp = path.with_name(path.name + PART)
+            tmp.write_bytes(data)
         os.replace(tmp, path)
     except OSError as exc:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
         raise write_error(path, exc) from None
     return path
 
 
-def write_text_whole(path: str | Path, text: str) -> Path:
+def write_text_whole(path: str | Path, text: str, shared: bool = False) -> Path:
     """`write_bytes_whole` for UTF-8 text."""
-    return write_bytes_whole(path, text.encode("utf-8"))
+    return write_bytes_whole(path, text.encode("utf-8"), shared)
 
 
 def remove_parts(directory: str | Path) -> list[Path]:

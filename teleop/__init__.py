@@ -36,6 +36,7 @@ from teleop.control.controller import Controller, StepResult
 from teleop.control.loop import EpisodeResult, run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
+from teleop.web.session_page.serve_options import ServeOptions
 
 __all__ = [
     "Command",
@@ -50,6 +51,7 @@ __all__ = [
     "KeyboardDevice",
     "Recorder",
     "ScriptDevice",
+    "ServeOptions",
     "Session",
     "SpaceMouseDevice",
     "StepResult",
@@ -108,11 +110,23 @@ def export_lerobot(
     return export_dataset(list(paths), options)
 
 
-def __getattr__(name: str):
-    """`teleop.web.session_page.serve` loads the browser server (viser, mjviser: 1-2 s) on first use, so
-    `import teleop` and the command line stay quick for everything that does not serve."""
-    if name == "serve":
-        from teleop.web.session_page.serve import serve  # lazy: heavy, and only a browser session needs it
+def serve(session: Session, options: ServeOptions | None = None, **keywords: Any) -> int:
+    """Serve `session` in the browser and block until Ctrl-C or `stop` is set, as `teleop serve` does; 0, or 1 if the loop failed.
 
-        return serve
-    raise AttributeError(f"module 'teleop' has no attribute {name!r}")
+    Every setting is reachable: pass `options` (a `teleop.ServeOptions`) and/or any of its fields as
+    keywords, which win over it (`host`, `port`, `token`, `no_token` as the flags; `pos_speed` m/s,
+    `rot_speed` rad/s, `status_file`, `keep_scene`, ...), and serve()'s own: `devices` (spec words such
+    as "gizmo", "keyboard", and/or started devices), `problems`, `policy`, `follower`, `stop` (a
+    threading.Event), `log`. Any other name raises TypeError. The browser server (viser, mjviser: 1-2 s)
+    loads on the first call, so `import teleop` stays quick for everything that does not serve.
+    """
+    from teleop.web.session_page.serve import serve as serve_session  # lazy: heavy, and only a browser session needs it
+
+    fields = {name: keywords.pop(name) for name in [f.name for f in dataclasses.fields(ServeOptions)] if name in keywords}
+    if options is None:
+        options = ServeOptions(**fields)
+    elif not isinstance(options, ServeOptions):
+        raise TypeError(f"serve(): options is a teleop.ServeOptions, not {type(options).__name__} (devices go by devices=...)")
+    elif fields:
+        options = dataclasses.replace(options, **fields)
+    return serve_session(session, options, **keywords)

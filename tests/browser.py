@@ -163,6 +163,32 @@ def click_button(page, label: str, timeout_s: float = 15.0) -> None:
     button.dispatch_event("click", timeout=timeout_s * 1000)
 
 
+def hold_until(page, key: str, done, timeout_s: float = 120.0, what: str = "the held key's effect",
+               press_again_s: float = 15.0) -> None:
+    """Hold `key` in `page` until `done()` is true, then let go; fails naming `what` after `timeout_s`.
+
+    The server times a hold from the press to the release as they reach it, so on a loaded machine a
+    hold of a fixed time can arrive as a press and a release together and move nothing: hold until the
+    effect shows instead. If the server let go meanwhile (a connection that stalled past its pings), a
+    held key would do nothing more: every `press_again_s` without the effect the key is pressed anew.
+    """
+    deadline = time.monotonic() + timeout_s
+    page.keyboard.down(key)
+    pressed = time.monotonic()
+    try:
+        while not done():
+            now = time.monotonic()
+            if now >= deadline:
+                raise AssertionError(f"timed out after {timeout_s:.0f} s holding {key!r}, waiting for {what}")
+            if now - pressed > press_again_s:
+                page.keyboard.up(key)
+                page.keyboard.down(key)
+                pressed = time.monotonic()
+            time.sleep(0.05)
+    finally:
+        page.keyboard.up(key)
+
+
 def run_async(coroutine):
     """Run a coroutine to the end on a thread of its own and return its result (or raise its error).
 
@@ -227,8 +253,9 @@ class ServeProcess:
                 return {}
             raise
 
-    def wait_for(self, predicate, timeout_s: float = 20.0, what: str = "condition") -> dict:
-        """Poll the status until `predicate(status)` holds; returns that status."""
+    def wait_for(self, predicate, timeout_s: float = 60.0, what: str = "condition") -> dict:
+        """Poll the status until `predicate(status)` holds; returns that status (generous by default: the
+        suite runs on parallel workers, and a loaded machine answers late, not wrongly)."""
         deadline = time.monotonic() + timeout_s
         status = {}
         while time.monotonic() < deadline:
@@ -279,3 +306,27 @@ def drag_gizmo_axis(page, target_pos, target_quat, axis: int = 0, pixels: float 
         page.mouse.move(*(grab + along * pixels * i / steps))
         time.sleep(step_s)
     page.mouse.up()
+
+
+def drag_gizmo_until(page, status, moved, axis: int = 0, pixels: float = 80.0, timeout_s: float = 120.0,
+                     what: str = "the gizmo drag to move the target") -> dict:
+    """Drag the gizmo's `axis` arrow until `moved(status())` holds; returns that status.
+
+    `status()` is the server's status (target_pos, target_quat of arm 0). On a loaded machine software WebGL
+    may not have drawn the gizmo when the drag starts, and a drag that grabs nothing moves nothing: the arrow
+    is dragged again (from where the target is now) until the target moves or `timeout_s` passes.
+    """
+    deadline = time.monotonic() + timeout_s
+    now = status()
+    while True:
+        drag_gizmo_axis(page, now["target_pos"][0], now["target_quat"][0], axis=axis, pixels=pixels)
+        retry = min(deadline, time.monotonic() + 15.0)
+        while True:
+            now = status()
+            if moved(now):
+                return now
+            if time.monotonic() >= retry:
+                break
+            time.sleep(0.1)
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}; last status: {json.dumps(now)[:800]}")

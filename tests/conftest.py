@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import ast
+import functools
 import os
 import re
 import select
 import shutil
 import signal
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -126,15 +129,48 @@ def _is_e2e(item: pytest.Item) -> bool:
         return False
 
 
+# --- parallel runs (pytest-xdist, `--dist loadgroup`: run.sh) ----------------------------------------------------
+# A module-scoped fixture is set up once per worker that runs a test using it: a served session, a Chromium, a
+# recorded-and-exported dataset would be made again on every worker. So the tests of a file that use one of its
+# module-scoped fixtures (or conftest's `browser`, `xvfb`) run on one worker, as one xdist group per file (its unit
+# tests a group of their own: they run first and never wait behind its slow ones); every other test goes to
+# whichever worker is free.
+CONFTEST_MODULE_FIXTURES = frozenset({"browser", "xvfb"})
+
+
+@functools.cache
+def module_scoped_fixtures(path: Path) -> frozenset[str]:
+    """Names of the fixtures `path` defines with a scope wider than a function (module, class, package, session)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.FunctionDef):
+            continue
+        for decorator in node.decorator_list:
+            scope = next((k.value for k in getattr(decorator, "keywords", ()) if k.arg == "scope"), None)
+            if isinstance(scope, ast.Constant) and scope.value != "function":
+                names.add(node.name)
+    return frozenset(names)
+
+
+def xdist_group_of(item: pytest.Item, marker: str) -> str | None:
+    """The xdist group of a test that uses a module-scoped fixture (its file, and "-unit" for a unit test), else None."""
+    shared = (module_scoped_fixtures(item.path) | CONFTEST_MODULE_FIXTURES) & set(getattr(item, "fixturenames", ()))
+    return (f"{item.path.stem}-unit" if marker == "unit" else item.path.stem) if shared else None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups and tests/suite_time.py orders by marker
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Every test gets exactly one of the markers unit, browser, e2e (browser wins over e2e)."""
+    """Every test gets exactly one of the markers unit, browser, e2e (browser wins over e2e), and its xdist group."""
     for item in items:
         if item.get_closest_marker("browser") or _uses_chromium(item):
-            item.add_marker(pytest.mark.browser)
+            marker = "browser"
         elif _is_e2e(item):
-            item.add_marker(pytest.mark.e2e)
+            marker = "e2e"
         else:
-            item.add_marker(pytest.mark.unit)
+            marker = "unit"
+        item.add_marker(getattr(pytest.mark, marker))
+        if (group := xdist_group_of(item, marker)) and not item.get_closest_marker("xdist_group"):
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
@@ -149,7 +185,26 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """The suite's clock (tests/suite_time.py): seconds by marker, `pytest -m unit`'s wall time and its budget."""
+    """The suite's clock (tests/suite_time.py: wall time by marker, the unit budget), and Ray kept to this process.
+
+    Ray's `ray.init()` joins the instance named in its temp dir's `ray_current_cluster` (which a local test
+    cluster writes) instead of starting its own: with tests in parallel, one worker's Ray would be another's.
+    Each pytest process that runs tests (an xdist worker, or a run without workers) gets a Ray temp dir of its
+    own (short: Ray's socket paths must fit 107 bytes); xdist's controller sets none, which its workers would inherit.
+    """
     from tests.suite_time import SuiteClock
 
     config.pluginmanager.register(SuiteClock(config), "teleop-suite-clock")
+    runs_tests = hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None)
+    if runs_tests and "RAY_TMPDIR" not in os.environ:
+        os.environ["RAY_TMPDIR"] = config.stash[RAY_TMPDIR] = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
+
+
+RAY_TMPDIR = pytest.StashKey[str]()
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """The Ray temp dir this process made, removed with what Ray left in it (logs, sockets of stopped instances)."""
+    if path := config.stash.get(RAY_TMPDIR, None):
+        os.environ.pop("RAY_TMPDIR", None)
+        shutil.rmtree(path, ignore_errors=True)

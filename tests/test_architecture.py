@@ -14,6 +14,7 @@ that shows it can fail.
 from __future__ import annotations
 
 import ast
+import importlib.util
 from functools import lru_cache
 from pathlib import Path
 
@@ -530,7 +531,13 @@ def test_only_the_command_line_installs_signal_handlers(tmp_path):
     assert not found, "only teleop/cli/ installs signal handlers (teleop/cli/signals.py):\n" + "\n".join(found)
 
 
-VISER_COMPAT = Path("teleop") / "web" / "viser_internals" / "compat.py"
+DOOR = Path("teleop") / "web" / "viser_internals"  # the one folder that may use viser's, mjviser's, websockets' internals
+LIBRARIES = ("viser", "mjviser", "websockets")
+
+
+def behind_the_door(relative: Path) -> bool:
+    """Whether a file (relative to the checkout) is in teleop/web/viser_internals/."""
+    return relative.parts[:len(DOOR.parts)] == DOOR.parts
 
 
 def viser_internals_touched(path: Path) -> list[str]:
@@ -588,15 +595,119 @@ def test_the_viser_internals_check_can_fail(tmp_path):
         ["2", "3", "4", "8", "9", "10", "11"]
 
 
-def test_only_viser_compat_touches_viser_or_websockets_internals():
-    """Issue 19: viser's and websockets' internals are used in teleop/web/viser_internals/compat.py only
+def test_only_the_door_touches_viser_or_websockets_internals():
+    """Issue 19, 48: viser's and websockets' internals are used in teleop/web/viser_internals/ only
     (tests/test_viser_contract.py checks them against the installed releases)."""
     found = [
         f"{path.relative_to(ROOT)}:{entry}"
         for package in [*ALLOWED, "bench"]
         for path in sorted((ROOT / package).rglob("*.py"))
-        if path.relative_to(ROOT) != VISER_COMPAT
+        if not behind_the_door(path.relative_to(ROOT))
         for entry in viser_internals_touched(path)
     ]
-    assert not found, "only teleop/web/viser_internals/compat.py may use viser's or websockets' internals:\n" + "\n".join(found)
-    assert viser_internals_touched(ROOT / VISER_COMPAT)  # the check sees the internals where they are
+    assert not found, f"only {DOOR}/ may use viser's or websockets' internals:\n" + "\n".join(found)
+    assert any(viser_internals_touched(path) for path in (ROOT / DOOR).rglob("*.py"))  # the check sees them where they are
+
+
+def is_private(name: str) -> bool:
+    """`_x` or `__x`, not a dunder (`__x__`) and not `_` alone."""
+    return len(name) > 1 and name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+@lru_cache(maxsize=None)
+def library_private_names() -> frozenset[str]:
+    """Every private name the installed viser, mjviser and websockets define or use: attributes (`x._impl`), functions,
+    methods and classes (`def _queue_update`), and names assigned (`self._mesh_groups = ...`), read from their
+    sources with `ast`."""
+    names: set[str] = set()
+    for library in LIBRARIES:
+        spec = importlib.util.find_spec(library)
+        assert spec is not None and spec.submodule_search_locations, f"{library} is not installed"
+        for folder in spec.submodule_search_locations:
+            for path in sorted(Path(folder).rglob("*.py")):
+                for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+                    if isinstance(node, ast.Attribute):
+                        names.add(node.attr)
+                    elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                        names.add(node.name)
+                    elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+                        names.add(node.id)
+    return frozenset(name for name in names if is_private(name))
+
+
+def private_accesses(path: Path) -> list[str]:
+    """Private attributes a file reads or writes on objects that may be viser's, mjviser's or websockets':
+    `x._name` (or getattr/setattr/hasattr/delattr(x, "_name")) whose receiver is not `self`, `cls` or a module the
+    file imports with `import` (the stdlib's, ours), when the file imports from those libraries or the name is one
+    of their private names (library_private_names)."""
+    tree = parsed(path)
+    uses_library = False
+    modules: set[str] = set()  # names bound by `import x` / `import x as y` to modules not of those libraries
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                top = alias.name.split(".")[0]
+                if top in LIBRARIES:
+                    uses_library = True
+                else:
+                    modules.add(alias.asname or top)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and node.module.split(".")[0] in LIBRARIES:
+            uses_library = True
+    known = library_private_names()
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            name, receiver = node.attr, node.value
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+              and node.func.id in ("getattr", "setattr", "hasattr", "delattr") and len(node.args) >= 2
+              and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str)):
+            name, receiver = node.args[1].value, node.args[0]
+        else:
+            continue
+        if not is_private(name) or (isinstance(receiver, ast.Name) and (receiver.id in ("self", "cls") or receiver.id in modules)):
+            continue
+        if uses_library or name in known:
+            found.append(f"{node.lineno}: {ast.unparse(receiver)}.{name}")
+    return sorted(found, key=lambda entry: int(entry.split(":")[0]))
+
+
+def private_uses_outside_the_door(root: Path) -> list[str]:
+    """private_accesses in every module of a checkout at `root` (the library, teleop/, bench/) but the door's."""
+    return [
+        f"{path.relative_to(root)}:{entry}"
+        for package in [*ALLOWED, "bench"]
+        for path in sorted((root / package).rglob("*.py"))
+        if not behind_the_door(path.relative_to(root))
+        for entry in private_accesses(path)
+    ]
+
+
+def test_the_private_access_check_can_fail(tmp_path):
+    """A planted `handle._impl` outside the door is found, the same file behind it is not; in a file that imports
+    viser any `x._name` counts, in one that does not only viser's, mjviser's and websockets' own names do."""
+    assert {"_impl", "_websock_connection", "_mesh_groups", "_queue_update", "_any_decor_visible"} <= library_private_names()
+    planted = "def poses(handle):\n    return handle._impl.props\n"
+    outside = tmp_path / "teleop" / "web" / "session_page" / "planted.py"
+    inside = tmp_path / DOOR / "planted.py"
+    for path in (outside, inside):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(planted)
+    assert private_uses_outside_the_door(tmp_path) == ["teleop/web/session_page/planted.py:2: handle._impl"]
+    sample = tmp_path / "bench" / "sample.py"
+    sample.parent.mkdir()
+    sample.write_text(
+        "import os\nimport argparse\nfrom viser import ViserServer\n\n"
+        "class A:\n    def f(self, server, scene):\n        self._mine = os._exit\n"
+        "        server._brand_new_private\n        getattr(scene, '_mesh_groups')\n"
+        "        return argparse._SubParsersAction, self.__class__\n")
+    assert [entry.split(": ")[1] for entry in private_accesses(sample)] == ["server._brand_new_private", "scene._mesh_groups"]
+    sample.write_text("def f(device, handle):\n    device._listener.join()\n    return handle._websock_connection\n")
+    assert [entry.split(": ")[1] for entry in private_accesses(sample)] == ["handle._websock_connection"]
+
+
+def test_no_private_attribute_of_viser_mjviser_or_websockets_is_used_outside_the_door():
+    """Issue 48: any `x._name` on an object that may be viser's, mjviser's or websockets' lives in
+    teleop/web/viser_internals/ (its package docstring says why each exists and what upstream change would retire it)."""
+    found = private_uses_outside_the_door(ROOT)
+    assert not found, f"private names of {', '.join(LIBRARIES)} are used only in {DOOR}/:\n" + "\n".join(found)
+    assert private_accesses(ROOT / DOOR / "scene_stream.py")  # the check sees them where they are

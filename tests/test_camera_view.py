@@ -92,8 +92,10 @@ def test_the_picture_yields_while_the_cpus_are_crowded():
         assert feed.crowded and "every 0.25 s while this machine's CPUs are busy (CPU pressure 50 % or more)" in notes[-1]
         assert looks_per_second() <= 6.0  # 4 a second, not 50
         pressure[0] = 20.0
-        _wait(lambda: not feed.crowded, 2.0)
+        _wait(lambda: not feed.crowded)
         assert notes[-1] == ""  # the note goes
-        assert looks_per_second() >= 20.0
+        rates = []  # back to its own rate: a second of it at 20 or more (on a loaded machine, some second soon)
+        _wait(lambda: rates.append(looks_per_second()) or rates[-1] >= 20.0, 60.0)
+        assert max(rates) >= 20.0, rates
     finally:
         feed.stop()

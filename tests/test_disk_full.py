@@ -132,6 +132,7 @@ def test_serve_keeps_driving_when_the_disk_fills(tmp_path):
     from devices.gizmo import GizmoDevice
     from teleop import Command, Recorder, Session
     from teleop.web.session_page.app import WebApp
+    from teleop.web.session_page.serve_options import ServeOptions
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -140,7 +141,7 @@ def test_serve_keeps_driving_when_the_disk_fills(tmp_path):
         session = Session()
         Recorder(session, fs.path, ("mcap", "hdf5"), verify="off", on_error="stop")
         gizmo = GizmoDevice()
-        app = WebApp(session, [gizmo], [], port=port, camera=False)
+        app = WebApp(session, [gizmo], [], ServeOptions(port=port), camera=False)
         try:
             with fs.limited():
                 app.start()

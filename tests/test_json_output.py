@@ -26,8 +26,7 @@ COMMANDS = [
     ("devices", ["devices", "--json"], dict),
     ("video", ["video", "{mcap}", "--out", "{out}/v.gif", "--size", "32x24", "--json"], dict),
     ("bench-control", ["bench", "--only", "control", "--quick", "--json"], dict),
-    ("bench-web", ["bench", "--only", "web", "--quick", "--json"], dict),  # viser prints a banner to stdout
-]
+]  # viser's banner (printed to stdout by `bench --only web`, ~50 s) is checked in one process below
 
 
 @pytest.fixture(scope="module")
@@ -164,10 +163,12 @@ def test_json_command_answers_an_error_a_bug_and_silence_once():
 
 
 def test_json_mode_sends_python_c_and_child_writes_to_stderr():
-    """Writes through sys.stdout, a stdout captured before, fd 1 and a child process all land on stderr."""
+    """Writes through sys.stdout, a stdout captured before, fd 1, a child process and viser's banner (what
+    `teleop bench --only web --json` starts) all land on stderr."""
     code = textwrap.dedent(
         """
         import os, subprocess, sys
+        import viser
         from rich.console import Console
         from teleop.cli.json_output import json_stdout, print_json
         early = sys.stdout
@@ -177,6 +178,9 @@ def test_json_mode_sends_python_c_and_child_writes_to_stderr():
             Console().print("rich console")
             os.write(1, b"fd 1\\n")
             subprocess.run([sys.executable, "-c", "print('child process')"], check=True)
+            server = viser.ViserServer(host="127.0.0.1", port=0)  # verbose: its banner, on stdout without json_stdout
+            print("viser on port", server.get_port())
+            server.stop()
             print_json({"ok": True})
             print("after the JSON")
         """
@@ -184,5 +188,7 @@ def test_json_mode_sends_python_c_and_child_writes_to_stderr():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout == '{"ok": true}\n'
+    port = result.stderr.split("viser on port ", 1)[1].split()[0]
+    assert f"http://127.0.0.1:{port}" in result.stderr  # the banner's address line
     for line in ("python print", "old sys.stdout", "rich console", "fd 1", "child process", "after the JSON"):
         assert line in result.stderr

@@ -1,12 +1,15 @@
-"""The quick suite reports its own time and fails over its budget (tests/suite_time.py), shown on a tiny suite.
+"""The suite reports its own time, fails over its unit budget and warns over its whole-run figure
+(tests/suite_time.py), shown on a tiny suite.
 
-The tiny suite is three trivial tests run by a real pytest in a fresh process, with a conftest that marks
-two of them unit and one e2e, as tests/conftest.py does, and registers the same clock.
+The tiny suite is three trivial tests run by a real pytest in a fresh process (serially, or on two xdist
+workers as run.sh runs the real one), with a conftest that marks two of them unit and one e2e, as
+tests/conftest.py does, and registers the same clock. The e2e test is defined first: the clock runs unit tests first.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -30,7 +33,7 @@ def pytest_collection_modifyitems(config, items):
 def pytest_configure(config):
     config.pluginmanager.register(SuiteClock(config), "teleop-suite-clock")
 """
-TESTS = "def test_one():\n    assert 1\n\n\ndef test_two():\n    assert 2\n\n\ndef test_slow():\n    assert 3\n"
+TESTS = "def test_slow():\n    assert 3\n\n\ndef test_one():\n    assert 1\n\n\ndef test_two():\n    assert 2\n"
 INI = "[pytest]\ntestpaths = suite\nmarkers =\n    unit: quick\n    browser: chromium\n    e2e: slow\n"
 
 
@@ -43,12 +46,26 @@ def tiny(tmp_path) -> Path:
     return tmp_path
 
 
-def pytest_run(folder: Path, *args: str, budget: str | None = None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "TELEOP_UNIT_BUDGET"}
-    if budget is not None:
-        env["TELEOP_UNIT_BUDGET"] = budget
+def pytest_run(folder: Path, *args: str, budget: str | None = None, warn: str | None = None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("TELEOP_UNIT_BUDGET", "TELEOP_SUITE_WARN")}
+    for name, value in (("TELEOP_UNIT_BUDGET", budget), ("TELEOP_SUITE_WARN", warn)):
+        if value is not None:
+            env[name] = value
     return subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *args], cwd=folder, env=env,
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=120)
+
+
+def marker_line(out: str, marker: str) -> tuple[int, float, float]:
+    """(tests, summed s, wall s) from the clock's line for `marker`."""
+    found = re.search(rf"^{marker}: (\d+) tests, ([\d.]+) s summed, ([\d.]+) s wall", out, re.M)
+    assert found, out
+    return int(found[1]), float(found[2]), float(found[3])
+
+
+def whole_wall(out: str) -> float:
+    found = re.search(r"^whole run: ([\d.]+) s wall", out, re.M)
+    assert found, out
+    return float(found[1])
 
 
 def test_the_unit_suite_prints_its_wall_time_and_fails_over_its_budget(tiny):
@@ -58,16 +75,36 @@ def test_the_unit_suite_prints_its_wall_time_and_fails_over_its_budget(tiny):
     assert "over TELEOP_UNIT_BUDGET=0 s" in over.stdout
 
 
-@pytest.mark.e2e  # four more pytest processes: a second or two
-def test_within_budget_it_passes_a_whole_run_sums_each_marker_and_a_narrowed_one_makes_no_suite_figure(tiny):
+@pytest.mark.e2e  # five more pytest processes: a few seconds
+def test_within_budget_it_passes_a_whole_run_times_each_marker_and_a_narrowed_one_has_no_budget(tiny):
     bad = pytest_run(tiny, "-m", "unit", budget="two minutes")
     assert bad.returncode == 4 and "TELEOP_UNIT_BUDGET='two minutes': expected seconds" in bad.stderr
     within = pytest_run(tiny, "-m", "unit", budget="600")
     assert within.returncode == 0, within.stdout + within.stderr
     assert "unit suite: 2 tests in " in within.stdout and "FAILED" not in within.stdout
-    whole = pytest_run(tiny, budget="0")  # unit tests summed: a few milliseconds, still over a budget of 0
+    whole = pytest_run(tiny, "-v", budget="0")  # a whole run holds the whole unit suite: its wall time, over 0 s
     assert whole.returncode == 1, whole.stdout + whole.stderr
-    assert "unit: 2 tests, " in whole.stdout and "e2e: 1 tests, " in whole.stdout and "unit suite:" not in whole.stdout
+    assert "over TELEOP_UNIT_BUDGET=0 s" in whole.stdout and "unit suite: 2 tests in " in whole.stdout
+    order = re.findall(r"::(test_\w+) PASSED", whole.stdout)
+    assert order == ["test_one", "test_two", "test_slow"], whole.stdout  # unit tests first, though defined after
+    (units, unit_sum, unit_wall), (e2es, _, e2e_wall) = marker_line(whole.stdout, "unit"), marker_line(whole.stdout, "e2e")
+    assert (units, e2es) == (2, 1) and unit_sum <= unit_wall <= whole_wall(whole.stdout) and e2e_wall <= whole_wall(whole.stdout)
     narrowed = pytest_run(tiny, "-m", "unit", "-k", "one", budget="0")  # not the whole suite: no figure, no budget
     assert narrowed.returncode == 0, narrowed.stdout + narrowed.stderr
-    assert "unit: 1 tests, " in narrowed.stdout and "unit suite:" not in narrowed.stdout
+    assert marker_line(narrowed.stdout, "unit")[0] == 1 and "unit suite:" not in narrowed.stdout
+
+
+@pytest.mark.e2e  # pytest on two xdist workers: a few seconds
+def test_on_xdist_workers_the_controller_times_each_marker_fails_over_budget_and_warns_past_the_run_figure(tiny):
+    over = pytest_run(tiny, "-n", "2", budget="0", warn="0")
+    assert over.returncode == 1, over.stdout + over.stderr
+    assert "3 passed" in over.stdout and "whole run: " in over.stdout and "(2 workers)" in over.stdout
+    assert marker_line(over.stdout, "unit")[0] == 2 and marker_line(over.stdout, "e2e")[0] == 1  # the workers' reports, counted
+    assert "over TELEOP_UNIT_BUDGET=0 s" in over.stdout and "WARNING: the run took" in over.stdout
+    warned = pytest_run(tiny, "-n", "2", warn="0")  # the whole run's figure only warns
+    assert warned.returncode == 0, warned.stdout + warned.stderr
+    assert "over TELEOP_SUITE_WARN=0 s" in warned.stdout and "FAILED" not in warned.stdout
+    quiet = pytest_run(tiny, "-n", "2", budget="600", warn="900")
+    assert quiet.returncode == 0 and "WARNING" not in quiet.stdout and "FAILED" not in quiet.stdout, quiet.stdout
+    bad = pytest_run(tiny, "-n", "2", warn="soon")
+    assert bad.returncode == 4 and "TELEOP_SUITE_WARN='soon': expected seconds" in bad.stderr

@@ -1,9 +1,10 @@
 """The viser and websockets internals teleop relies on are there, in the installed releases.
 
-teleop/web/viser_internals/compat.py is the one module that uses them; pyproject.toml pins viser
-to the minor versions this file passes on. When a release changes one, the failing
-test says what changed and which teleop feature it breaks, so that raising the pin is
-a matter of running this file (and fixing viser_compat.py where it fails).
+teleop/web/viser_internals/ is the one folder that uses them (its package docstring lists each, with
+the upstream change that would retire it); pyproject.toml pins viser to the minor versions this file
+passes on. When a release changes one, the failing test says what changed and which teleop feature
+it breaks, so that raising the pin is a matter of running this file (and fixing the module of
+teleop/web/viser_internals/ it names where it fails).
 
 Most checks run on a real ViserServer started through `wrapping_serve` and reached
 with raw HTTP and websockets; the client bundle is read from viser's installed
@@ -31,10 +32,9 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from teleop.web.session_page.page_devices import CONNECT_SPACEMOUSE
-from teleop.web.viser_internals.compat import (
-    FIXED_DPR_PARAM, GUI_BUTTON_SELECTOR, INDEX_PATHS, limit_message_size, run_javascript, with_head_script,
-    wrapping_serve,
-)
+from teleop.web.viser_internals import install
+from teleop.web.viser_internals.page_script import FIXED_DPR_PARAM, GUI_BUTTON_SELECTOR, run_javascript
+from teleop.web.viser_internals.serving_hooks import INDEX_PATHS, limit_message_size, with_head_script, wrapping_serve
 from tests import browser as headless
 from tests.support import wait_until
 
@@ -56,7 +56,7 @@ SCENE_CANVAS = ("[...document.querySelectorAll('canvas')].filter((c) => c.width 
 def broken(what: str, breaks: str) -> str:
     """The failure message: what changed in the installed viser, and what of teleop's it breaks."""
     return (f"viser {viser.__version__} / websockets {websockets.__version__}: {what}. This breaks {breaks}. "
-            "Adapt teleop/web/viser_internals/compat.py (the only place that relies on it) or keep the pin in pyproject.toml.")
+            "Adapt teleop/web/viser_internals/ (the only place that relies on it) or keep the pin in pyproject.toml.")
 
 
 @dataclass(repr=False)  # a failing assert would print viser's page headers
@@ -304,7 +304,7 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
     import numpy as np
     from viser._assignable_props_api import AssignablePropsBase
 
-    from teleop.web.viser_internals.compat import FLOAT_ARRAY_HINTS, quick_array_casts
+    from teleop.web.viser_internals.casts import FLOAT_ARRAY_HINTS, quick_array_casts
 
     original = getattr(AssignablePropsBase._cast_value_recursive, "original", AssignablePropsBase._cast_value_recursive)
     source = inspect.getsource(original)
@@ -346,7 +346,7 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
 
     import teleop
     from teleop.web.session_page.body_poses import BodyPoses
-    from teleop.web.viser_internals.compat import SceneStream
+    from teleop.web.viser_internals.scene_stream import SceneStream
 
     session = teleop.Session(scene="lift", robot="panda", seed=0)
     model = session.controller.model
@@ -364,6 +364,7 @@ def test_body_poses_and_one_update_send_what_mjviser_and_viser_would():
         assert ours.entries, broken("mjviser's ViserMujocoScene no longer has the handles BodyPoses reads",
                                     "the cheap scene update (it falls back to mjviser's, about 3 times the CPU)")
         queued: list = []
+        install()  # as an app's start does (teleop.web.shared.access.start_guarded)
         stream = SceneStream(servers[1])
         stream._send = queued.extend  # what the block hands on to be written to the pages
         buffer = servers[1]._websock_server._broadcast_buffer
@@ -469,12 +470,13 @@ def test_scene_stream_frames_are_viser_s_wire_format_after_the_nodes_and_whole_f
     import numpy as np
     from viser._messages import SceneNodeUpdateMessage
 
-    from teleop.web.viser_internals.compat import SceneStream, serializable, set_arrays
+    from teleop.web.viser_internals.scene_stream import SceneStream, serializable, set_arrays
 
     server = served.server
     axes = server.scene.add_batched_axes("/contract/stream_axes", batched_wxyzs=np.tile([1.0, 0, 0, 0], (2, 1)),
                                          batched_positions=np.zeros((2, 3)))
     gizmo = server.scene.add_transform_controls("/contract/stream_gizmo", position=(0.0, 0.0, 0.0))
+    install()  # as an app's start does (teleop.web.shared.access.start_guarded)
     stream = SceneStream(server)
     url = served.url.replace("http://", "ws://")
     updated = lambda m: m.get("type") == "SceneNodeUpdateMessage" and m.get("name") == "/contract/stream_axes"  # noqa: E731
@@ -532,3 +534,63 @@ def test_scene_stream_frames_are_viser_s_wire_format_after_the_nodes_and_whole_f
     assert [bytes(b) for b in ours] == [bytes(b) for b in theirs]
     axes.remove()
     gizmo.remove()
+
+
+# -- installed once, explicitly -------------------------------------------------------
+INSTALL_PROBE = '''
+import json, threading
+import viser
+from viser._assignable_props_api import AssignablePropsBase
+from viser._scene_api import SceneApi
+from viser._scene_handles import SceneNodeHandle
+import teleop.web.replay_page.viewer, teleop.web.session_page.app, teleop.web.session_page.serve  # every page
+from teleop.web.viser_internals import install, installed
+from teleop.web.viser_internals.scene_stream import SceneStream
+
+def patched():
+    return {"cast": getattr(AssignablePropsBase._cast_value_recursive, "quick", False),
+            "queue_update": getattr(SceneNodeHandle._queue_update, "coalescing", False),
+            "flush": getattr(viser.ViserServer.flush, "quiet_in_updates", False),
+            "scene_message": getattr(SceneApi._queue_scene_message, "collecting", False)}
+
+out = {"imported": patched(), "installed_before": installed()}
+server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+try:
+    SceneStream(server)
+except RuntimeError as exc:
+    out["refused"] = str(exc)
+threads = [threading.Thread(target=install) for _ in range(8)]
+for t in threads: t.start()
+for t in threads: t.join()
+first = (AssignablePropsBase._cast_value_recursive, SceneNodeHandle._queue_update, viser.ViserServer.flush,
+         SceneApi._queue_scene_message)
+install()
+out["after"] = patched()
+out["installed_after"] = installed()
+out["same_wrappers"] = first == (AssignablePropsBase._cast_value_recursive, SceneNodeHandle._queue_update,
+                                 viser.ViserServer.flush, SceneApi._queue_scene_message)
+out["wrapped_once"] = all(not any(getattr(f.original, k, False) for k in ("quick", "coalescing", "quiet_in_updates", "collecting"))
+                          for f in first)
+SceneStream(server)  # now it starts
+server.stop()
+print(json.dumps(out))
+'''
+
+
+@pytest.mark.e2e
+def test_viser_internals_are_installed_only_by_install_once_and_a_scene_stream_needs_it():
+    """Issue 48: importing every page patches nothing of viser's; install() (from eight threads at once, then again)
+    patches each method once; a SceneStream refuses to start before it."""
+    import json
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    result = subprocess.run([sys.executable, "-c", INSTALL_PROBE], cwd=root, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = json.loads(result.stdout.strip().splitlines()[-1])
+    assert not any(out["imported"].values()), f"patched at import: {out['imported']}"
+    assert out["installed_before"] is False
+    assert "install()" in out.get("refused", ""), "SceneStream started without viser's scene updates collected"
+    assert all(out["after"].values()) and out["installed_after"] is True, out["after"]
+    assert out["same_wrappers"] and out["wrapped_once"]

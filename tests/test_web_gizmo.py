@@ -84,6 +84,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
     """The WebApp in-process, no browser: real-time loop, panel commands, save, exact replay check."""
     from teleop import Command, Recorder, Session
     from teleop.web.session_page.app import WebApp
+    from teleop.web.session_page.serve_options import ServeOptions
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -91,7 +92,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
     session = Session()
     Recorder(session, tmp_path, ("mcap",), verify="background", on_error="stop")
     gizmo = GizmoDevice()
-    app = WebApp(session, [gizmo], [], port=port, camera=False)
+    app = WebApp(session, [gizmo], [], ServeOptions(port=port), camera=False)
     app.start()
     try:
         time.sleep(0.5)
@@ -118,6 +119,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
 def test_speed_sliders_set_keyboard_and_spacemouse_speeds():
     from teleop.control.session import Session
     from teleop.web.session_page.app import WebApp
+    from teleop.web.session_page.serve_options import ServeOptions
 
     class HoldToMove:
         """Stands in for the keyboard: what the sliders change is its speeds."""
@@ -138,7 +140,7 @@ def test_speed_sliders_set_keyboard_and_spacemouse_speeds():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    app = WebApp(Session(), [device, GizmoDevice()], ["spacemouse: no SpaceMouse found"], port=port, camera=False)
+    app = WebApp(Session(), [device, GizmoDevice()], ["spacemouse: no SpaceMouse found"], ServeOptions(port=port), camera=False)
     try:
         app.panel.pos_slider.value = 0.3
         app.panel.rot_slider.value = 1.5

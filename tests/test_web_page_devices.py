@@ -119,11 +119,10 @@ def test_a_webhid_spacemouse_in_the_page_moves_the_arm(browser, server):
                         what="the WebHID device to connect")
         start = _target(server)
         push = list(encode_combined(0, -350, 0, 0, 0, 0))  # y toward the operator... pushed away: -y in HID
-        page.evaluate(f"window.__hidReport({json.dumps(push)})")
-        time.sleep(0.6)
-        page.evaluate(f"window.__hidReport({json.dumps(list(encode_combined(0, 0, 0, 0, 0, 0)))})")
-        moved = server.wait_for(lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - start) > 0.03,
+        page.evaluate(f"window.__hidReport({json.dumps(push)})")  # held until the target has moved, not for a set time
+        moved = server.wait_for(lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - start) > 0.03, timeout_s=60,
                                 what="the reports to move the target")
+        page.evaluate(f"window.__hidReport({json.dumps(list(encode_combined(0, 0, 0, 0, 0, 0)))})")
         delta = np.array(moved["target_pos"][0]) - start
         assert delta[0] > 0.03 and abs(delta[1]) < 0.01  # pushed away from the operator (behind the robot): +x
         _settled(server)  # the zero report stopped it

@@ -19,6 +19,7 @@ import pytest
 
 
 from tests import browser as headless  # noqa: E402
+from tests.support import wait_until  # noqa: E402
 
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,11 +54,9 @@ def episode_files(directory: Path) -> list[Path]:
 
 def drag_x(page, server, pixels: float = 80.0) -> tuple[np.ndarray, dict]:
     """Drag the gizmo along its x arrow; returns the target before and the status once it moved."""
-    before = server.status()
-    target = np.array(before["target_pos"][0])
-    headless.drag_gizmo_axis(page, target, before["target_quat"][0], axis=0, pixels=pixels)
-    after = server.wait_for(lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - target) > 0.03,
-                            what="the gizmo drag to move the target")
+    target = np.array(server.status()["target_pos"][0])
+    after = headless.drag_gizmo_until(page, server.status, lambda s: np.linalg.norm(np.array(s["target_pos"][0]) - target) > 0.03,
+                                      pixels=pixels)
     return target, after
 
 
@@ -108,7 +107,7 @@ def test_record_drag_save_replays_exactly(page, server, record_dir):
     files_before = set(episode_files(record_dir))
     headless.click_button(page, "Record")
     server.wait_for(lambda s: s["recording"], what="recording to start")
-    page.get_by_role("button", name="Stop", exact=True).wait_for(timeout=5000)
+    page.get_by_role("button", name="Stop", exact=True).wait_for(timeout=30_000)
     drag_x(page, server, pixels=-60)
     server.wait_for(lambda s: s["episode_steps"] > 20, what="some recorded steps")
     headless.click_button(page, "Save")
@@ -121,7 +120,7 @@ def test_record_drag_save_replays_exactly(page, server, record_dir):
     checked = server.wait_for(lambda s: s["verified"].get(str(new[0])) is not None, what="the server's replay check")
     assert checked["verified"][str(new[0])] is True
     assert status["episodes_saved"] == saved_before + 1
-    page.get_by_role("button", name="Record", exact=True).wait_for(timeout=5000)
+    page.get_by_role("button", name="Record", exact=True).wait_for(timeout=30_000)
 
 
 def test_save_moves_to_the_next_seed_with_the_arm_home(page, server, record_dir):
@@ -193,9 +192,12 @@ def test_two_pages_see_the_same_session(page, server, browser):
         updates = server.status()["web_updates"]
         headless.click_button(second, "Close")  # the second page drives the same robot...
         server.wait_for(lambda s: s["gripper_open"] == [False] and s["web_updates"] > updates + 5, what="the fingers to move")
-        time.sleep(1.0)
-        gained = [headless.frames_received(p) - b for p, b in zip((page, second), before)]
-        assert min(gained) >= 5, f"a page missed the motion: {gained} messages"  # ...and both see it move
+
+        def gained() -> list[int]:
+            return [headless.frames_received(p) - b for p, b in zip((page, second), before)]
+
+        # ...and both see it move (waited for: a loaded machine hands a page its messages late)
+        assert wait_until(lambda: min(gained()) >= 5, 60), f"a page missed the motion: {gained()} messages"
         headless.click_button(page, "Open")
         server.wait_for(lambda s: s["gripper_open"] == [True], what="the first page's click")
         status = server.status()

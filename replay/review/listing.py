@@ -32,7 +32,7 @@ from replay.subtasks.sidecar import sidecar_path
 from scenes.errors import TeleopError, first_line
 
 CACHE_DIR = ".teleop-review"
-ROW_VERSION = 1
+ROW_VERSION = 2  # raised when the scores change: 2, the jerk at a 30 Hz reference (rows of other rates scored again)
 THUMB_SIZE = (96, 72)  # px
 _lock = threading.Lock()  # one render at a time: on a 2-core machine two would only take turns
 videos_rendered = 0  # review videos rendered by this process (a cached one is not rendered again)

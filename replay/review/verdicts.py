@@ -1,19 +1,18 @@
 """A reviewer's verdict on an episode, kept in a sidecar beside it: `<episode>.review.json`.
 
 The episode file itself is never rewritten. Each write replaces the whole sidecar
-atomically (a temporary file renamed over it), so two reviewers writing at once
-leave one complete verdict: the last one written, with its reviewer named.
+atomically (recorder.disk's `write_text_whole`: a temporary file of the writer's own,
+renamed over it), so two reviewers writing at once leave one complete verdict: the
+last one written, with its reviewer named.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
-from recorder.disk import write_error
+from recorder.disk import write_text_whole
 from scenes.errors import TeleopError
 
 SUFFIX = ".review.json"
@@ -42,25 +41,6 @@ def read_verdict(episode: str | Path) -> dict | None:
             "note": str(doc.get("note", ""))}
 
 
-def write_whole(path: Path, text: str) -> None:
-    """Replace `path` atomically through a temporary file of its own (one per writer, so writers
-    in other processes never share one); a full disk or a read-only folder is a WriteError."""
-    tmp = None
-    try:
-        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=path.name + ".", suffix=".part",
-                                         delete=False, encoding="utf-8") as fh:
-            tmp = fh.name
-            fh.write(text)
-        os.replace(tmp, path)
-    except OSError as exc:
-        if tmp is not None:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-        raise write_error(path, exc) from None
-
-
 def write_verdict(episode: str | Path, verdict: str | None, reviewer: str, note: str = "") -> dict:
     """Record a verdict (None: a note alone, the verdict left unset) and return what was written."""
     if verdict not in (*VERDICTS, None):
@@ -71,5 +51,5 @@ def write_verdict(episode: str | Path, verdict: str | None, reviewer: str, note:
     episode = Path(episode)
     doc = {"episode": episode.name, "verdict": verdict, "reviewer": reviewer,
            "time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "note": str(note or "")}
-    write_whole(verdict_path(episode), json.dumps(doc, indent=1) + "\n")
+    write_text_whole(verdict_path(episode), json.dumps(doc, indent=1) + "\n", shared=True)  # a WriteError if it cannot
     return {k: doc[k] for k in ("verdict", "reviewer", "time", "note")}

@@ -22,6 +22,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from replay.engine import replay_states
 from replay.episode import CONTROL_POLICY, Episode, EpisodeError, find_episodes, load_episode
 from replay.features import CameraChoiceError, resolve_cameras
 from replay.handoff import put_unless
@@ -29,6 +30,7 @@ from replay.judge import judge_steps
 from replay.render_pool import RENDERERS
 from replay.review.encode import VideoError, VideoWriter, check_writable, video_format
 from replay.review.overlay import STRIP_HEIGHT, Overlay, StepInfo, Timeline
+from replay.review.timebase import control_dt
 from replay.subtasks.sidecar import AnnotationError, read_subtasks
 
 DEFAULT_SIZE = (320, 240)  # each camera's width x height, px
@@ -106,7 +108,7 @@ def subtask_spans(episode: Episode) -> list[tuple[str, int, int]]:
 
 def step_infos(episode: Episode, success: np.ndarray | None = None) -> tuple[Timeline, list[StepInfo]]:
     """The overlay's timeline and one StepInfo per control step."""
-    dt = episode.meta.control_dt if episode.meta.control_hz else episode.seconds / max(1, episode.steps)
+    dt = control_dt(episode)
     spans = subtask_spans(episode)
     timeline = Timeline(episode.meta.task or episode.meta.scene, episode.steps, episode.seconds, spans)
     if success is None:
@@ -145,11 +147,7 @@ class EpisodeFrames:
         across videos: replay.render_pool)."""
         try:
             with RENDERERS.renderer(self.model, *self.size, [self.cameras[index]]) as renderer:
-                data = mujoco.MjData(self.model)
-                spec = mujoco.mjtState.mjSTATE_INTEGRATION
-                for state in self.episode.state:
-                    mujoco.mj_setState(self.model, data, state, spec)
-                    mujoco.mj_kinematics(self.model, data)
+                for _, data in replay_states(self.episode, self.model, kinematics_only=True):
                     mujoco.mj_camlight(self.model, data)
                     if not put_unless(out, renderer.render(data, 0), stop):
                         return
@@ -222,7 +220,7 @@ def write_episodes(episodes: Sequence[Episode], out: str | Path, options: VideoO
         raise VideoError(str(exc)) from None
     if len({(s.width, s.height) for s in sources}) > 1:
         raise VideoError("the episodes' frames differ in size (name the same --camera for all)")
-    fps = options.fps or episodes[0].meta.control_hz or 30.0
+    fps = options.fps or episodes[0].meta.control_hz or 1.0 / control_dt(episodes[0])
     writer = VideoWriter(out, fps)
     t0 = time.perf_counter()
     try:

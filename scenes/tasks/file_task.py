@@ -16,6 +16,7 @@ store so that replay, re-judging and generation need nothing else
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -43,6 +44,7 @@ from scenes.vary.variation import Ranges, VariationError, parse_ranges
 
 BIMANUAL_ROBOTS = ("bimanual",)
 REFERENCE_SIZE = 0.02  # m: the task-cube half-size that `scale = "robot"` lengths are written for
+NOT_HELD: tuple[float, None] = (-math.inf, None)  # a hold timer not running: (last judged s, since s)
 
 __all__ = ["FileTask", "TaskFileError", "load_task_file", "task_from_bundle"]
 
@@ -213,7 +215,7 @@ class FileTask(Task):
     def _timed(self, key: int, t: float, ok: bool) -> bool:
         """Success with its hold: `ok` now, and since at least `hold` s of sim time (per MjData, `key`)."""
         if not ok:
-            self._held[key] = (t, None)
+            self._held[key] = NOT_HELD
             return False
         held = self._held.get(key)
         since = held[1] if held is not None and t >= held[0] else None  # t < last: the data was reset
@@ -233,7 +235,7 @@ class FileTask(Task):
 
         def observe() -> bool:  # `_timed` with its usual case (not succeeding) inline: one call a tick
             if not test():
-                held[key] = (data.time, None)
+                held[key] = NOT_HELD  # as `_timed` stores it, with no time needed: nothing held to lose on a reset
                 return False
             return timed(key, data.time, True)
 

@@ -55,6 +55,7 @@ def watch_lifeline(stop: threading.Event) -> None:
 def run(spec: SessionSpec, stop: threading.Event) -> int:
     from replay.render import rasterize_in_render_threads
     from teleop.web.session_page.serve import serve  # viser: imported once the spec is read
+    from teleop.web.session_page.serve_options import ServeOptions
 
     rasterize_in_render_threads()  # the page's camera picture renders in a thread of its own: no llvmpipe threads
 
@@ -79,11 +80,11 @@ def run(spec: SessionSpec, stop: threading.Event) -> int:
     gc.collect()
     gc.freeze()
     try:
-        return serve(session, devices, host=spec.host, port=spec.port, status_file=Path(spec.status_file),
-                     problems=problems, log=lambda line: print(line, flush=True), token=spec.token,
-                     page_keyboard=True, stop=stop, headline=progress.line, draw_unwatched=False,
-                     status_period_s=STATUS_PERIOD_S, status_form=lambda st: SessionStatus.from_serve(st).to_json(),
-                     print_token=False)  # this process's output is a log file: the lobby hands out the URL
+        options = ServeOptions(host=spec.host, port=spec.port, token=spec.token, page_keyboard=True,
+                               status_file=Path(spec.status_file), status_period_s=STATUS_PERIOD_S,
+                               status_form=lambda st: SessionStatus.from_serve(st).to_json(), headline=progress.line,
+                               draw_unwatched=False, print_token=False)  # its output is a log file: the lobby hands out the URL
+        return serve(session, options, devices=devices, problems=problems, stop=stop, log=lambda line: print(line, flush=True))
     finally:
         timer.cancel()
         progress.stop()

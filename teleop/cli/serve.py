@@ -9,11 +9,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from teleop.cli.access_args import add_access_args
 from teleop.cli.session_args import add_session_args, devices_from, follower_from, session_from
 from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
+
+if TYPE_CHECKING:  # annotations only: the web package loads when the command runs
+    from teleop.web.session_page.serve_options import ServeOptions
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -45,8 +49,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from teleop.web.shared.access import resolve_token
 
     token = resolve_token(args.host, args.token, args.no_token)  # a bad combination: one line, exit 2, at once
+    options = serve_options_from(args, token)  # a bad value: one line, exit 2, before anything slow
     # Lazy: the browser server (viser, mjviser) takes 1-2 s to import; only this command needs it.
-    from teleop.web.session_page.serve import asks_for_keyboard, serve
+    from teleop.web.session_page.serve import serve
     from teleop.web.session_page.camera_view import warm_up
     from teleop.web.shared.net import check_port_free
 
@@ -61,14 +66,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
         devices, problems = devices_from(args, session.controller.n_arms, serving=True)
         # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
         with cancel_on_interrupt(even_if_ignored=True) as stop:
-            return serve(session, devices, host=args.host, port=args.port, pos_speed=args.pos_speed,
-                         rot_speed=args.rot_speed, status_file=args.status_file, problems=problems,
-                         log=lambda line: print(line, flush=True), policy=policy, token=token, no_token=args.no_token,
-                         page_keyboard=asks_for_keyboard(args.device.split(",")), stop=stop, keep_scene=args.keep_scene,
-                         follower=follower)
+            return serve(session, options, devices=devices, problems=problems, policy=policy, follower=follower,
+                         stop=stop, log=lambda line: print(line, flush=True))
     finally:
         if follower is not None:
             follower.close()  # torque off however serving ended (serve() closed it already when it ran)
+
+
+def serve_options_from(args: argparse.Namespace, token: str | None) -> "ServeOptions":
+    """`teleop serve`'s flags as the options object; `token` as resolve_token gave it (None: open).
+
+    The devices are opened here (a leader arm that cannot start stops the command), so whether the page's
+    keys drive follows the --device words, a keyboard that could not start included.
+    """
+    from teleop.web.session_page.serve_options import ServeOptions, asks_for_keyboard
+
+    return ServeOptions(host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed, token=token,
+                        no_token=args.no_token, page_keyboard=asks_for_keyboard(args.device.split(",")),
+                        policy_device=args.policy_device, keep_scene=args.keep_scene, status_file=args.status_file)
 
 
 def _load_policy(args: argparse.Namespace):

@@ -17,6 +17,7 @@ from typing import Protocol
 
 import mujoco
 import numpy as np
+from mujoco import mju_dist3
 
 from devices.command import Command
 from scenes import Scene, actuator_for_joint
@@ -409,18 +410,20 @@ class Controller:
             self.stats.ik_failures += 1
             self.note("IK failed: holding the last good joint targets")
 
-        mujoco.mj_step(self.model, self.data, nstep=self.substeps)
-        mujoco.mj_kinematics(self.model, self.data)  # poses at the new state, for errors and views
+        data = self.data
+        mujoco.mj_step(self.model, data, nstep=self.substeps)
+        mujoco.mj_kinematics(self.model, data)  # poses at the new state, for errors and views
         self.steps += 1
+        now = data.time  # s of sim time, read once
         observe = self._observe  # a task whose success must hold for a while is timed every tick
-        self._judged = None if observe is None else (self.steps, self.data.time, observe())
+        self._judged = None if observe is None else (self.steps, now, observe())
 
-        site_xpos = self.data.site_xpos
-        errors = np.array([norm(site_xpos[a.site_id] - a.target_pos) for a in self.arms])
+        site_xpos = data.site_xpos
+        errors = np.array([mju_dist3(site_xpos[a.site_id], a.target_pos) for a in self.arms])  # m, EE to target
         self.tracking_errors.append(errors)
         if observer is not None:
             observer.after_physics(self, commands)
-        return StepResult(time=self.time, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
+        return StepResult(time=now, ik_ok=ik_ok, tracking_error_m=errors, events=tuple(events))
 
     def _solve_ik(self) -> bool:
         """Joint targets for every arm's EE target into data.ctrl; False if IK failed for one."""

@@ -29,7 +29,6 @@ from teleop.web.shared.access import Gate, announce, resolve_token, start_guarde
 from teleop.web.session_page.drawing import Markers, place_camera
 from teleop.web.shared.net import check_port_free
 from teleop.web.replay_page.subtasks import SubtaskPanel
-from teleop.web.viser_internals.compat import quick_array_casts
 
 SPEEDS = ("0.25x", "0.5x", "1x", "2x", "4x")
 VIEWER_REACH = "see this episode and overwrite its subtask file"  # for the --no-token warning
@@ -54,7 +53,6 @@ class EpisodeViewer:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         place_camera(server)
-        quick_array_casts()
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False
         n_arms = episode.ee_target.shape[1] if episode.ee_target.ndim == 3 else 0

@@ -41,13 +41,13 @@ from teleop.web.session_page.page_devices import PageInputs
 from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
 from teleop.web.session_page.panel import Panel, PanelDevice
 from teleop.web.session_page.sim_thread import SimThread, Snapshot
+from teleop.web.session_page.serve_options import STATUS_PERIOD_S, ServeOptions  # noqa: F401 - STATUS_PERIOD_S also read from here
 from teleop.web.session_page.view_quality import head_script, simplify
-from teleop.web.viser_internals.compat import run_javascript
+from teleop.web.viser_internals.page_script import run_javascript
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
     from teleop.learn.takeover import Takeover
 
-STATUS_PERIOD_S = 0.2
 PHONE_PATH = "/phone"  # the phone page (teleop/web/session_page/phone.html), served beside viser's
 
 
@@ -59,39 +59,36 @@ class WebApp:
         session: Session,
         devices: list,
         device_problems: list[str],
-        host: str = "127.0.0.1",
-        port: int = 8080,
-        status_file: Path | None = None,
-        pos_speed: float = 0.15,
-        rot_speed: float = 0.8,
+        options: ServeOptions | None = None,
+        *,
         camera: bool = True,
-        log=print,
         takeover: "Takeover | None" = None,
-        token: str | None = None,
-        page_keyboard: bool = False,
-        headline: Callable[[], str] | None = None,
-        draw_unwatched: bool = True,
-        status_period_s: float = STATUS_PERIOD_S,
-        status_form: Callable[[dict], str] | None = None,
+        log: Callable[[str], None] = print,
     ) -> None:
+        """`options` as serve() resolved them: its token is the one required (None: open), page_keyboard
+        None is no; camera False: no camera picture (tests, benches); takeover: a policy that drives."""
+        options = ServeOptions() if options is None else options
+        self.options = options
+        host, port, token = options.host, options.port, options.token
+        pos_speed, rot_speed = options.pos_speed, options.rot_speed
         self.session = session
         self.takeover = takeover  # a policy driving until the operator touches a device
         self.follower = None  # a real arm mirroring the simulated one (teleop.control.follower.Follower), set by serve()
-        self.headline = headline  # a line of markdown shown under the task (a campaign's progress), asked at 4 Hz
+        self.headline = options.headline  # a line of markdown shown under the task (a campaign's progress), asked at 4 Hz
         self.devices = list(devices)
         self.device_problems = list(device_problems)
         self.host, self.port = host, port
-        self.status_file = status_file
+        self.status_file = options.status_file
         self.log = log
         self.camera_size = IMAGE_SIZE
         self.last_saved: Path | None = None
         self._messages: list[str] = []
         self._status_due = 0.0
-        self.status_period_s = status_period_s  # s between status-file writes
+        self.status_period_s = options.status_period_s  # s between status-file writes
         self._closed = False
         self.gate = Gate.for_server(host, port, token)  # token None: open (loopback, or --no-token)
         self.token = token
-        self.status_form = status_form  # what the status file holds, made from status() (a campaign's typed status)
+        self.status_form = options.status_form  # what the status file holds, made from status() (a campaign's typed status)
         self.has_phone_page = False
 
         if session.recorder is not None:
@@ -99,7 +96,7 @@ class WebApp:
         # Keys typed in the page: into this machine's keyboard device when one runs, else a device of their own.
         self.input = InputChannel()
         self.page_keys: PageKeys | None = None
-        if page_keyboard:
+        if options.page_keyboard:
             keyboard = next((d for d in self.devices if isinstance(d, KeyboardDevice)), None)
             if keyboard is None:
                 keyboard = PageKeyboardDevice(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.controller.n_arms)
@@ -136,7 +133,7 @@ class WebApp:
                              steer=takeover.steer if takeover is not None else None)
         self.sim.on_saved = self._on_saved
         self.drawer = SceneDrawer(self.server, self.sim, self.gizmo)
-        self.drawer.only_watched = not draw_unwatched  # a campaign's sessions draw only for a browser
+        self.drawer.only_watched = not options.draw_unwatched  # a campaign's sessions draw only for a browser
         self.panel = Panel(self.server, self, tuple(session.scene.cameras), pos_speed, rot_speed)
         self.camera: CameraFeed | None = None
         if camera and session.scene.cameras:

@@ -1,16 +1,17 @@
 """BodyPoses: mjviser's `update_from_mjdata` for our pages (one environment, no camera
-tracking, no overlay, no convex hulls), from mjviser's handles (`_mesh_groups`: each
-`handle`, `body_ids`, `mocap_ids`; `site_handles_by_group`) and MuJoCo's own body
-quaternions (`xquat`, which mjviser recomputes from `xmat` each update). It costs
-about a third of mjviser's update; where mjviser is not as described (another
-release, an overlay switched on), it calls mjviser's update.
+tracking, no overlay, no convex hulls), from mjviser's handles (which handle draws which
+bodies: teleop.web.viser_internals.mjviser_poses) and MuJoCo's own body quaternions
+(`xquat`, which mjviser recomputes from `xmat` each update). It costs about a third of
+mjviser's update; where mjviser is not as described (another release, an overlay switched
+on), it calls mjviser's update.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from teleop.web.viser_internals.compat import send_updates, set_arrays
+from teleop.web.viser_internals.mjviser_poses import pose_entries, stored_poses
+from teleop.web.viser_internals.scene_stream import send_updates, set_arrays
 
 
 class BodyPoses:
@@ -18,7 +19,7 @@ class BodyPoses:
 
     def __init__(self, scene) -> None:
         self.scene = scene
-        self.entries = self._entries(scene)  # None: mjviser's own update
+        self.entries = pose_entries(scene)  # None: mjviser's own update
         self._layout = self._rows(scene, self.entries) if self.entries is not None else None
         self._sent: tuple[np.ndarray, np.ndarray] | None = None  # (positions, wxyzs) as last given, float32
 
@@ -30,27 +31,14 @@ class BodyPoses:
         nbody = scene.mj_model.nbody
         rows, starts = [], [0]
         for handle, bodies, mocaps in entries:
-            props = handle._impl.props  # noqa: SLF001
+            stored = stored_poses(handle)
             these = bodies if mocaps is None else nbody + mocaps
-            if (not len(these) or props.batched_positions.dtype != np.float32 or props.batched_wxyzs.dtype != np.float32
-                    or props.batched_positions.shape != (len(these), 3) or props.batched_wxyzs.shape != (len(these), 4)):
+            if (stored is None or not len(these) or stored[0].dtype != np.float32 or stored[1].dtype != np.float32
+                    or stored[0].shape != (len(these), 3) or stored[1].shape != (len(these), 4)):
                 return None
             rows.append(these)
             starts.append(starts[-1] + len(these))
         return np.concatenate(rows), np.array(starts), any(m is not None for _, _, m in entries)
-
-    @staticmethod
-    def _entries(scene) -> list | None:
-        try:
-            if (scene._any_decor_visible() or scene._show_convex_hull  # noqa: SLF001
-                    or scene.camera_tracking_enabled or scene.num_envs != 1):
-                return None
-            entries = [(g.handle, np.asarray(g.body_ids), None if g.mocap_ids is None else np.asarray(g.mocap_ids))
-                       for g in scene._mesh_groups]  # noqa: SLF001
-            entries += [(h, np.array([body]), None) for (body, _), h in scene.site_handles_by_group.items()]
-        except AttributeError:
-            return None
-        return entries
 
     def update(self, data) -> None:
         """data: an MjData; or, when `entries` is not None, anything holding an MjData's xpos, xquat, mocap_pos
@@ -83,14 +71,14 @@ class BodyPoses:
         self._sent = (pos, quat)
         for i in np.flatnonzero(pos_moved | quat_moved):
             handle = self.entries[i][0]
-            impl = handle._impl  # noqa: SLF001
+            stored = stored_poses(handle)
             lo, hi = starts[i], starts[i + 1]
-            if impl.removed or not handle.visible:  # not given: sent once it shows again
+            if stored is None or not handle.visible:  # not given: sent once it shows again
                 pos[lo:hi] = quat[lo:hi] = np.nan
                 continue
-            props, updates = impl.props, {}
+            updates = {}
             if pos_moved[i]:
-                props.batched_positions[...] = updates["batched_positions"] = pos[lo:hi]
+                stored[0][...] = updates["batched_positions"] = pos[lo:hi]
             if quat_moved[i]:
-                props.batched_wxyzs[...] = updates["batched_wxyzs"] = quat[lo:hi]
-            send_updates(impl, updates)
+                stored[1][...] = updates["batched_wxyzs"] = quat[lo:hi]
+            send_updates(handle, updates)

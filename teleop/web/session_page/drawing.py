@@ -9,7 +9,7 @@ Snapshot (copied at the end of a tick). It runs
 in viser's event loop, cued by each tick of the control loop (at most `max_hz`
 times a second, and only when the state changed): the poses go into mjviser's
 batched handles (body_poses.BodyPoses), and they, the markers and the gizmos
-go out as one frame written to each page from there (viser_compat.SceneStream).
+go out as one frame written to each page from there (viser_internals.scene_stream.SceneStream).
 Waking a thread costs ~0.1-0.25 ms of CPU on the project's virtual machine, a
 good part of a session's cost when many run on one: a tick wakes the control
 loop and viser's loop, and no drawing thread besides. (Drawing in the control
@@ -37,7 +37,7 @@ from mjviser import ViserMujocoScene
 
 from teleop.web.session_page.sim_thread import SimThread, Snapshot
 from teleop.web.session_page.body_poses import BodyPoses
-from teleop.web.viser_internals.compat import SceneStream, quick_array_casts, set_arrays
+from teleop.web.viser_internals.scene_stream import SceneStream, set_arrays
 
 GIZMO_SCALE = 0.16  # m: big enough to grab, small enough not to hide the gripper
 EE_COLOR = (255, 140, 0)
@@ -115,7 +115,6 @@ class SceneDrawer:
         self.model = copy.copy(snap.model)
         self.data = mujoco.MjData(self.model)
         place_camera(server)
-        quick_array_casts()  # for what still goes through viser's setters (BodyPoses' fallback: mjviser's own update)
         self.scene = ViserMujocoScene(server, self.model, num_envs=1)
         self.scene.camera_tracking_enabled = False  # keep world coordinates: gizmos and markers live there
         self.bodies = BodyPoses(self.scene)  # mjviser's update, a third of its cost
@@ -183,7 +182,7 @@ class SceneDrawer:
             self._last_tick = snap.tick
             moved = self._moved(snap)
             # One block for the gizmos, the markers and the bodies: one message per scene node, all in one
-            # frame written to each page when it ends (viser_compat.SceneStream), not a message per property
+            # frame written to each page when it ends (viser_internals.scene_stream.SceneStream), not a message per property
             # set for viser's sender to take in windows.
             with self.stream.update():
                 self._sync_gizmos(snap)  # even when nothing moved: a drag may have ended on a clamped target

@@ -33,7 +33,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
 from teleop.web.session_page.input_messages import InputMessage, Rejected, parse
-from teleop.web.viser_internals.compat import limit_message_size
+from teleop.web.viser_internals.serving_hooks import limit_message_size
 
 PATH = "/teleop/input"
 MAX_FRAME = 64 * 1024  # bigger frames close the connection (websockets' limit; code 1009)

@@ -2,7 +2,7 @@
 // page's input channel (`send`, given by the channel's script). The server validates every message and
 // feeds devices/gamepad.py and devices/webhid.py; it treats a silent pad as released. `ui` names the panel's
 // "Connect SpaceMouse" button as viser draws it: {button: CSS selector, connectSpaceMouse: its label}
-// (teleop/web/session_page/page_devices.py, teleop/web/viser_internals/compat.py).
+// (teleop/web/session_page/page_devices.py, teleop/web/viser_internals/page_script.py).
 (function (send, ui) {
   "use strict";
   if (window.__teleopPageDevices) return;

@@ -22,7 +22,7 @@ from teleop.web.session_page.input_messages import (
     Gamepad, Hid, HidConnect, HidDisconnect, InputMessage, Phone, PhoneButton, View,
 )
 from teleop.web.session_page.page_keyboard import PageKeys
-from teleop.web.viser_internals.compat import GUI_BUTTON_SELECTOR
+from teleop.web.viser_internals.page_script import GUI_BUTTON_SELECTOR
 
 SCRIPT = Path(__file__).with_name("page_devices.js")
 PHONE_PAGE = Path(__file__).with_name("phone.html")
@@ -50,7 +50,7 @@ class PageInputs:
     def script(self) -> str:
         """The page's gamepad / WebHID script, run with the input channel's sender."""
         source = SCRIPT.read_text(encoding="utf-8").strip().rstrip(";")
-        # The panel's button, as viser draws it (viser_compat): found by the page from its selector and label.
+        # The panel's button, as viser draws it (viser_internals.page_script): found by the page from its selector and label.
         ui = json.dumps({"button": GUI_BUTTON_SELECTOR, "connectSpaceMouse": CONNECT_SPACEMOUSE})
         send = "(m) => window.__teleopInput && window.__teleopInput.sendRaw(JSON.stringify(m))"
         return f"\n{source}({send}, {ui});\n"

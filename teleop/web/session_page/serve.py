@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 import threading
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,7 +19,8 @@ from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
 from scenes.workers import shielded
 from teleop.control.session import Session
 from teleop.web.shared.access import resolve_token
-from teleop.web.session_page.app import STATUS_PERIOD_S, WebApp
+from teleop.web.session_page.app import WebApp
+from teleop.web.session_page.serve_options import ServeOptions, asks_for_keyboard
 from teleop.web.shared.net import check_port_free, exposure_warning, remote_hint
 
 if TYPE_CHECKING:  # annotations only
@@ -28,75 +30,52 @@ if TYPE_CHECKING:  # annotations only
 DEFAULT_DEVICES = SERVE_DEVICES  # also teleop serve's --device default
 
 
-def asks_for_keyboard(words: list[str]) -> bool:
-    """Whether a --device list names the keyboard (then keys typed in the page drive too, started or not)."""
-    return any(w.strip().partition(":")[0].lower() == "keyboard" for w in words)
-
-
 def serve(
     session: Session,
+    options: ServeOptions | None = None,
+    *,
     devices: Sequence[str | Device] = DEFAULT_DEVICES,
-    host: str = "127.0.0.1",
-    port: int = 8080,
-    pos_speed: float = 0.15,
-    rot_speed: float = 0.8,
-    status_file: Path | None = None,
     problems: Sequence[str] = (),
-    log: Callable[[str], None] = print,
     policy: "Policy | str | Path | None" = None,
-    policy_device: str = "cpu",
-    token: str | None = None,
-    no_token: bool = False,
-    page_keyboard: bool | None = None,
-    headline: Callable[[], str] | None = None,
-    draw_unwatched: bool = True,
-    stop: threading.Event | None = None,
-    status_period_s: float = STATUS_PERIOD_S,
-    keep_scene: bool = False,
-    status_form: Callable[[dict], str] | None = None,
-    print_token: bool = True,
     follower: "Follower | None" = None,
+    stop: threading.Event | None = None,
+    log: Callable[[str], None] = print,
 ) -> int:
     """Serve `session` at http://host:port until Ctrl-C or `stop` is set; returns 0, or 1 if the loop failed.
 
+    options: how it is served (host, port, speeds, token, status file, ...: ServeOptions, default
+    ServeOptions()). The rest are things with a life of their own:
     devices: spec words ("gizmo", "keyboard", "spacemouse[:N...]", "script:FILE")
-    and/or started Device objects; words that cannot start are listed on the page.
-    pos_speed / rot_speed: hold-to-move speeds (m/s, rad/s) for keyboard and SpaceMouse.
+    and/or started Device objects; words that cannot start are listed on the page, as are `problems`
+    (devices the caller could not start). Every device is closed when serving ends.
     An episode in progress at the end is saved, marked incomplete; a Ctrl-C meanwhile waits for it.
-    stop: a cancellation token (`teleop serve` sets it on Ctrl-C and SIGTERM); a script may
-    rely on the KeyboardInterrupt of its own Ctrl-C instead.
-    policy: a Policy, a LeRobot pretrained-model folder or `script:FILE`; it drives until
-    the operator touches a device, and gets control back by the key `p` or the panel's
+    policy: a Policy, a LeRobot pretrained-model folder or `script:FILE` (loaded on options.policy_device);
+    it drives until the operator touches a device, and gets control back by the key `p` or the panel's
     button (teleop.learn.takeover). Recorded episodes then say who drove each step.
-    token: the secret every browser must bring (`?token=...` in the printed URL); default
-    TELEOP_TOKEN, else none on loopback and a random one on any other host.
-    no_token: serve a non-loopback host with no token (trusted networks; warns on stderr).
-    page_keyboard: keys typed in the page drive as the keyboard does (default: when a keyboard
-    is among `devices`, started or not).
-    headline: a line of markdown the panel shows under the task, asked a few times a second
-    (a campaign's progress: teleop/campaign/progress.py).
-    draw_unwatched: send scene updates with no browser connected (False: none then, saving the CPU).
-    port: 0 binds a port the system picks (the status file's `port` says which).
-    status_form: what the status file holds, made from the status dict (default: that dict as JSON).
-    print_token: False logs the page's URL without its token (a campaign's session, whose log is a file:
-    the lobby hands the URL to the operator instead).
-    keep_scene: Save, Stop and Discard leave the scene as it is and the next episode starts from there
-    (default: they move to the next seed, and every episode starts from its seed's initial state).
     follower: a real arm already following `session` (teleop.control.follower); its state is on the page
     and in the status, and it is closed (torque off) when serving ends, however it ends.
+    stop: a cancellation token (`teleop serve` sets it on Ctrl-C and SIGTERM); a script may
+    rely on the KeyboardInterrupt of its own Ctrl-C instead.
+    log: where the lines for the operator go (the URL to open, saved files).
     """
-    token = resolve_token(host, token, no_token)  # a bad combination fails before anything starts
+    options = ServeOptions() if options is None else options
+    if not isinstance(options, ServeOptions):  # serve(session, ["gizmo"]) as before the options object
+        raise TypeError(f"serve(): options is a ServeOptions, not {type(options).__name__} (devices go by devices=...)")
+    host, port = options.host, options.port
+    token = resolve_token(host, options.token, options.no_token)  # a bad combination fails before anything starts
     if port != 0:
         check_port_free(host, port)
-    session.fresh_episodes = not keep_scene
+    session.fresh_episodes = not options.keep_scene
     words = [d for d in devices if isinstance(d, str)]
     started = [d for d in devices if not isinstance(d, str)]
+    page_keyboard = options.page_keyboard
     if page_keyboard is None:
         page_keyboard = asks_for_keyboard(words) or any(d.kind == "keyboard" for d in started)
+    options = replace(options, token=token, page_keyboard=page_keyboard)  # what WebApp serves: resolved
     problems = list(problems)
     if words:
-        options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=session.controller.n_arms)
-        opened, failed = open_devices(",".join(words), options, require_any=False, require_known=True)
+        device_options = DeviceOptions(pos_speed=options.pos_speed, rot_speed=options.rot_speed, n_arms=session.controller.n_arms)
+        opened, failed = open_devices(",".join(words), device_options, require_any=False, require_known=True)
         started += opened
         problems += failed
     recorder = session.recorder
@@ -107,11 +86,8 @@ def serve(
     takeover = None
     try:
         if policy is not None:
-            takeover = _takeover(session, policy, policy_device)
-        app = WebApp(session, started, problems, host=host, port=port, status_file=status_file,
-                     pos_speed=pos_speed, rot_speed=rot_speed, log=log, takeover=takeover, token=token,
-                     page_keyboard=page_keyboard, headline=headline, draw_unwatched=draw_unwatched,
-                     status_period_s=status_period_s, status_form=status_form)
+            takeover = _takeover(session, policy, options.policy_device)
+        app = WebApp(session, started, problems, options, takeover=takeover, log=log)
     except BaseException:
         for d in started:
             d.close()
@@ -127,7 +103,7 @@ def serve(
     log(f"teleop serve: {session.robot.name} on {session.scene_name}{where}")
     if takeover is not None:
         log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
-    log(f"open {app.page_url if print_token else app.url} in a browser (Ctrl-C to stop)")
+    log(f"open {app.page_url if options.print_token else app.url} in a browser (Ctrl-C to stop)")
     hint = remote_hint(host)
     if hint:
         log(hint)

@@ -33,7 +33,7 @@ import json
 import viser
 
 from teleop.web.session_page.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
-from teleop.web.viser_internals.compat import FIXED_DPR_PARAM
+from teleop.web.viser_internals.page_script import FIXED_DPR_PARAM
 
 LIGHT_NAME = "/teleop/software_view_light"
 LIGHT_INTENSITY = 2.0

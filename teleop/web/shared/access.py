@@ -23,7 +23,7 @@ server that is what keeps a web page from driving the session or saving files.
 Both servers, `teleop serve` and the replay viewer, start through this gate.
 The check is installed by wrapping the one call through which viser starts
 its server (`websockets.asyncio.server.serve`) while `ViserServer` starts
-(teleop.web.viser_internals.compat.wrapping_serve), so viser's own serving code is used unchanged;
+(teleop.web.viser_internals.serving_hooks.wrapping_serve), so viser's own serving code is used unchanged;
 the same wrapper routes extra websocket paths (the page's input channel) to
 our handlers on the same port, so one SSH tunnel is enough.
 If a viser release stopped going through that call, starting fails rather than
@@ -65,7 +65,8 @@ from websockets.http11 import Request, Response
 
 from teleop.errors import UsageError
 from teleop.web.shared.net import exposure_warning, is_loopback, page_url, remote_hint
-from teleop.web.viser_internals.compat import INDEX_PATHS, Handler, ProcessRequest, with_head_script, wrapping_serve
+from teleop.web.viser_internals import install as install_viser_internals
+from teleop.web.viser_internals.serving_hooks import INDEX_PATHS, Handler, ProcessRequest, with_head_script, wrapping_serve
 
 TOKEN_ENV = "TELEOP_TOKEN"
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,128}")  # goes into URLs and cookies unescaped
@@ -326,8 +327,10 @@ def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,
     """`start()` (which must start a viser server and return it) with the gate and routes installed.
 
     Raises RuntimeError (after `stop`) if the server did not start through the
-    wrapped call, so a session never serves without its token check.
+    wrapped call, so a session never serves without its token check. Every app of ours
+    starts its viser server here, so viser's process-wide patches are installed here too.
     """
+    install_viser_internals()
     with _guarded_serve(gate, routes, pages, head) as wrapped:
         server = start()
     if not wrapped:

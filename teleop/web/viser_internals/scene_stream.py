@@ -1,194 +1,56 @@
-"""Everything teleop relies on in viser, mjviser and websockets beyond their public APIs, in one place.
+"""A page's scene updates written by us, not by viser's sender (`SceneStream`), and a node's property sets
+collected into them (`set_arrays`, `send_updates`, and three process-wide patches: `collect_scene_updates`,
+applied by teleop.web.viser_internals.install).
 
-viser (pinned to 1.1.x in pyproject.toml) has no public call for some things the
-served page needs, so teleop uses a few of its internals. Only this module touches
-them (tests/test_architecture.py checks that), and tests/test_viser_contract.py
-checks each one against the installed viser, naming what changed when a release
-breaks one:
+viser queues every property set as a message in its broadcast buffer; its sender task then
+wakes, takes a window, serializes it per page and awaits the send: about 1.3 ms of CPU an
+update in a loaded session, for 13 messages. `SceneStream.update()` is a block in which a
+scene handle's property sets (`SceneNodeHandle._queue_update`) and its owner-stamped
+messages such as a position or orientation (`SceneApi._queue_scene_message`, which stamps
+`owner`) are collected in the thread, one message per node, and `ViserServer.flush` does
+nothing (mjviser flushes inside its own update). At its end the messages become one frame of
+viser's wire format (its `_message_producer`: the msgpack's size, the zstd'd size, zstd'd
+msgpack of `{"messages", "timestampSec", "binaryBufferLengths"}`, then the arrays 8-byte
+aligned by `_append_aligned_buffers`, each a `{"__binary_index", "dtype"}` placeholder in its
+message), written in viser's event loop (`_broadcast_buffer.event_loop`) to each of the
+server's connections (`_websock_server._live_connections`) with websockets'
+`protocol.send_binary` and `send_data()`. A page gets frames only once viser's sender has
+taken everything up to the nodes' creation (`_broadcast_buffer.generator_cursors`, against
+`message_counter`): a frame never overtakes the node it updates. A page that missed one (not
+caught up yet, or its socket holding over a megabyte) gets the whole newest state next, as
+viser's buffer would have replayed it.
 
-- `run_javascript`: viser's client runs the source of a `RunJavascriptMessage`
-  (`viser._messages`) with `Function(source)()` (viser's `add_plotly` uses it);
-  it is queued on one client's connection (`ClientHandle._websock_connection`).
-- `wrapping_serve`: `ViserServer()` starts its one HTTP + websocket server with
-  `websockets.asyncio.server.serve(handler, host, port, ..., process_request=...)`,
-  looked up at call time; while the context is open that function lets us change
-  the handler and `process_request` (the token gate and the input channel's route,
-  teleop.web.shared.access), so viser's own serving code runs unchanged behind them.
-- `INDEX_PATHS`, `with_head_script`: viser answers its page (its
-  `client/build/index.html`, one `<head>`) at `/`, gzipped when the browser accepts
-  gzip; a script of ours goes first in that `<head>` (teleop.web.session_page.view_quality).
-- `FIXED_DPR_PARAM`: the URL query parameter viser's client reads when it starts,
-  the canvas' device pixels per CSS pixel.
-- `GUI_BUTTON_SELECTOR`: a GUI button from `gui.add_button(label)` is a `<button>`
-  element whose text is its label; page scripts (page_devices.js) find the panel's
-  buttons by selector and label, both handed to them from Python.
-- `limit_message_size`: websockets' per-connection limit on incoming messages
-  (viser sets 50 MB on every connection of its server, ours included).
-- `quick_array_casts`: every property a handle is given goes through
-  `AssignablePropsBase._cast_value_recursive`, which compares the property's type hint
-  with `npt.NDArray[np.float16]`, `[np.float32]` and `[np.float64]` built anew at each
-  call (typing's substitution machinery: ~20-35 us a property, a third of a scene
-  update's cost). For a float-array hint it now looks the dtype up in a table built
-  once, and casts as viser does (`np.asarray(value).astype(dtype)`); any other hint
-  goes to viser's own function unchanged.
-- `SceneStream`: a page's scene updates written by us, not by viser's sender. viser
-  queues every property set as a message in its broadcast buffer; its sender task then
-  wakes, takes a window, serializes it per page and awaits the send: about 1.3 ms of CPU
-  an update in a loaded session, for 13 messages. `SceneStream.update()` is a block in
-  which a scene handle's property sets (`SceneNodeHandle._queue_update`) and its
-  owner-stamped messages such as a position or orientation
-  (`SceneApi._queue_scene_message`, which stamps `owner`) are collected in the thread,
-  one message per node, and `ViserServer.flush` does nothing (mjviser flushes inside its
-  own update). At its end the messages become one frame of viser's wire format (its
-  `_message_producer`: the msgpack's size, the zstd'd size, zstd'd msgpack of
-  `{"messages", "timestampSec", "binaryBufferLengths"}`, then the arrays 8-byte aligned
-  by `_append_aligned_buffers`, each a `{"__binary_index", "dtype"}` placeholder in its
-  message), written in viser's event loop (`_broadcast_buffer.event_loop`) to each of
-  the server's connections (`_websock_server._live_connections`) with websockets'
-  `protocol.send_binary` and `send_data()`. A page gets frames only once viser's sender
-  has taken everything up to the nodes' creation (`_broadcast_buffer.generator_cursors`,
-  against `message_counter`): a frame never overtakes the node it updates. A page
-  that missed one (not caught up yet, or its socket holding over a megabyte) gets the
-  whole newest state next, as viser's buffer would have replayed it.
 - `set_arrays`: what viser's setter does for a float-array property (cast to the
   stored array's dtype, nothing sent when equal, the stored array updated in place, a
   private copy queued: `AssignablePropsBase`'s `props_setattr`), for several of one
   node's properties at once and without its per-call type checks: one message.
-- `send_updates`: a node's updates into the open block, or to viser as one message
-  (`teleop.web.session_page.body_poses.BodyPoses` sets mjviser's body handles through it).
+- `send_updates`: a node's updates, already stored in its properties, into the open block,
+  or to viser as one message (teleop.web.session_page.body_poses sets mjviser's body handles
+  through it, with teleop.web.viser_internals.mjviser_poses).
+
+Why viser needs these and what upstream change would retire them: the package's docstring
+(teleop/web/viser_internals/__init__.py).
 """
 
 from __future__ import annotations
 
 import asyncio
-import gzip
 import threading
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import msgspec.msgpack
 import numpy as np
-import numpy.typing as npt
 import viser
-import websockets.asyncio.server
 import zstandard
-from viser._assignable_props_api import AssignablePropsBase
-from viser._messages import RunJavascriptMessage, SceneNodeUpdateMessage
+from viser._messages import SceneNodeUpdateMessage
+from viser._scene_api import SceneApi
 from viser._scene_handles import SceneNodeHandle
 from viser.infra._infra import _append_aligned_buffers
-from websockets.asyncio.server import ServerConnection
-from websockets.datastructures import Headers
-from websockets.http11 import Request, Response
 from websockets.protocol import OPEN
 
-Handler = Callable[[ServerConnection], Awaitable[None]]
-ProcessRequest = Callable[[ServerConnection, Request], "Response | None | Awaitable[Response | None]"]
-ServeWrap = Callable[[Handler, "ProcessRequest | None"], "tuple[Handler, ProcessRequest | None]"]
-
-INDEX_PATHS = ("/", "/index.html")  # where viser answers its page
-FIXED_DPR_PARAM = "fixedDpr"  # ?fixedDpr=0.5: viser's client draws its canvas at 0.5 device pixels per CSS pixel
-GUI_BUTTON_SELECTOR = "button"  # the element a viser GUI button is drawn as; its text is the button's label
-WEBSOCKET_PROTOCOL = f"viser-v{viser.__version__}"  # the subprotocol a client of viser's websocket must ask for
-
-
-def viewer_camera_message() -> bytes:
-    """The message a page sends when its 3D view opens (msgpack, viser's ViewerCameraMessage). viser counts a
-    client as connected, and sends it scene updates, from its first one: a client of the websocket that is not a
-    browser (the campaign bench's watching pages) sends it to be watched like one."""
-    import msgspec.msgpack  # viser's own wire format
-
-    return msgspec.msgpack.encode({
-        "type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [1.5, 0.0, 1.0], "fov": 0.9,
-        "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 800, "look_at": [0.0, 0.0, 0.0],
-        "up_direction": [0.0, 0.0, 1.0]})
-
-
-def run_javascript(client: viser.ClientHandle, source: str) -> None:
-    """Run `source` in one browser's page (viser's client: `Function(source)()`), after what is queued before."""
-    client._websock_connection.queue_message(RunJavascriptMessage(source=source))  # noqa: SLF001
-
-
-_SERVE_LOCK = threading.Lock()  # one wrapped start at a time: the replacement is process-wide while it lasts
-
-
-@contextmanager
-def wrapping_serve(wrap: ServeWrap) -> Iterator[list[bool]]:
-    """While open, a server viser starts gets `wrap(handler, process_request)` in place of its own two;
-    yields a list that gains an entry per server so started (empty: viser did not start through the call)."""
-    module = websockets.asyncio.server
-    original = module.serve
-    wrapped: list[bool] = []
-
-    def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
-        wrapped.append(True)
-        handler, process_request = wrap(handler, process_request)
-        return original(handler, *args, process_request=process_request, **kwargs)
-
-    with _SERVE_LOCK:
-        module.serve = serve
-        try:
-            yield wrapped
-        finally:
-            module.serve = original
-
-
-def with_head_script(response: Response, script: bytes, cache: dict) -> Response:
-    """viser's page with `script` first in its <head> (before viser's own code runs), same encoding.
-
-    `cache` maps a page body as viser sent it to the edited one (viser sends the
-    same bytes each time, so the page is edited once per encoding).
-    """
-    if "text/html" not in response.headers.get("Content-Type", ""):
-        return response
-    key = bytes(response.body)
-    if key not in cache:
-        zipped = response.headers.get("Content-Encoding", "") == "gzip"
-        html = gzip.decompress(key) if zipped else key
-        head = html.find(b"<head>")
-        if head < 0:
-            cache[key] = key
-        else:
-            html = html[: head + 6] + script + html[head + 6:]
-            cache[key] = gzip.compress(html) if zipped else html
-    body = cache[key]
-    headers = Headers([(k, v) for k, v in response.headers.raw_items() if k.lower() != "content-length"])
-    headers["Content-Length"] = str(len(body))  # websockets' Headers add a value on assignment
-    return Response(response.status_code, response.reason_phrase, headers, body)
-
-
-def limit_message_size(connection: ServerConnection, max_bytes: int) -> None:
-    """Close `connection` (code 1009) on an incoming message over `max_bytes`, not viser's 50 MB."""
-    protocol = getattr(connection, "protocol", None)
-    if protocol is not None and hasattr(protocol, "max_message_size"):
-        protocol.max_message_size = max_bytes
-
-
-FLOAT_ARRAY_HINTS = {npt.NDArray[t]: t for t in (np.float16, np.float32, np.float64)}  # viser's float-array hints
-_CAST_LOCK = threading.Lock()
-
-
-def quick_array_casts() -> None:
-    """Make viser's property cast look float-array hints up in FLOAT_ARRAY_HINTS (once per process; see above)."""
-    with _CAST_LOCK:
-        original = AssignablePropsBase._cast_value_recursive  # noqa: SLF001
-        if getattr(original, "quick", False):
-            return
-
-        def cast(self, hint, value, prop_name):
-            try:
-                dtype = FLOAT_ARRAY_HINTS.get(hint)
-            except TypeError:  # an unhashable hint: viser's own comparisons
-                dtype = None
-            if dtype is not None:
-                return np.asarray(value).astype(dtype)
-            return original(self, hint, value, prop_name)
-
-        cast.quick = True  # type: ignore[attr-defined]
-        cast.original = original  # type: ignore[attr-defined]
-        AssignablePropsBase._cast_value_recursive = cast  # noqa: SLF001
-
-
+_PATCH_LOCK = threading.Lock()
 _PENDING = threading.local()  # while a SceneStream.update block is open in the thread: .updates
 # {(id(scene api), node name): (scene api, name, {prop: value})} and .messages [owner-stamped scene messages]
 
@@ -196,7 +58,7 @@ _PENDING = threading.local()  # while a SceneStream.update block is open in the 
 def _coalesce_scene_updates() -> None:
     """Make SceneNodeHandle._queue_update collect into an open SceneStream.update block of its thread, one
     message per node (once per process)."""
-    with _CAST_LOCK:
+    with _PATCH_LOCK:
         original = SceneNodeHandle._queue_update  # noqa: SLF001
         if getattr(original, "coalescing", False):
             return
@@ -225,7 +87,7 @@ def _pend(impl, updates: dict) -> bool:
 
 def _quiet_flush_in_updates() -> None:
     """Make ViserServer.flush do nothing inside a SceneStream.update block of its thread (once per process)."""
-    with _CAST_LOCK:
+    with _PATCH_LOCK:
         original = viser.ViserServer.flush
         if getattr(original, "quiet_in_updates", False):
             return
@@ -257,14 +119,21 @@ def set_arrays(handle, **arrays: np.ndarray) -> None:
             setattr(props, name, value.copy())
         updates[name] = value
     if updates:
-        send_updates(impl, updates)
+        _send_updates(impl, updates)
 
 
-def send_updates(impl, updates: dict) -> None:
-    """A node's (`handle._impl`) property updates, already stored in its props: into this thread's open
-    SceneStream.update block, else to viser as one message (its scene API stamps the owner)."""
+def send_updates(handle, updates: dict) -> None:
+    """A scene node's property updates {name: value}, already stored in its properties (as
+    teleop.web.viser_internals.mjviser_poses.stored_poses hands them out): into this thread's open
+    SceneStream.update block, else to viser as one message. Nothing for a node already removed."""
+    impl = handle._impl  # noqa: SLF001
+    if not impl.removed:
+        _send_updates(impl, updates)
+
+
+def _send_updates(impl, updates: dict) -> None:
     if not _pend(impl, updates):
-        impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001
+        impl.api._queue_scene_message(SceneNodeUpdateMessage(impl.name, updates))  # noqa: SLF001 - it stamps the owner
 
 
 class SceneStream:
@@ -280,9 +149,9 @@ class SceneStream:
     WRITE_LIMIT = 1 << 20  # bytes: a page whose socket holds more than this is skipped until it drains
 
     def __init__(self, server: viser.ViserServer) -> None:
-        _coalesce_scene_updates()
-        _quiet_flush_in_updates()
-        _collect_scene_messages()
+        if not scene_updates_collected():
+            raise RuntimeError("SceneStream needs viser's scene updates collected: call "
+                               "teleop.web.viser_internals.install() when the app starts")
         self._server = server._websock_server  # noqa: SLF001
         self._buffer = self._server._broadcast_buffer  # noqa: SLF001
         self._loop = self._buffer.event_loop
@@ -384,9 +253,7 @@ class SceneStream:
 def _collect_scene_messages() -> None:
     """Make SceneApi._queue_scene_message (owner-stamped scene messages, such as a node's position and orientation
     sets) collect into an open SceneStream.update block of its thread (once per process)."""
-    from viser._scene_api import SceneApi
-
-    with _CAST_LOCK:
+    with _PATCH_LOCK:
         original = SceneApi._queue_scene_message  # noqa: SLF001
         if getattr(original, "collecting", False):
             return
@@ -401,6 +268,21 @@ def _collect_scene_messages() -> None:
         queue_scene_message.collecting = True  # type: ignore[attr-defined]
         queue_scene_message.original = original  # type: ignore[attr-defined]
         SceneApi._queue_scene_message = queue_scene_message  # noqa: SLF001
+
+
+def collect_scene_updates() -> None:
+    """The process-wide patches SceneStream.update blocks rely on (idempotent): a node's property sets and
+    owner-stamped scene messages collected into the thread's open block, viser's flush quiet inside it."""
+    _coalesce_scene_updates()
+    _quiet_flush_in_updates()
+    _collect_scene_messages()
+
+
+def scene_updates_collected() -> bool:
+    """Whether collect_scene_updates is in place."""
+    return (getattr(SceneNodeHandle._queue_update, "coalescing", False)  # noqa: SLF001
+            and getattr(viser.ViserServer.flush, "quiet_in_updates", False)
+            and getattr(SceneApi._queue_scene_message, "collecting", False))  # noqa: SLF001
 
 
 def serializable(message, binary: list[memoryview]) -> dict:
