@@ -151,7 +151,7 @@ def project(point, box: dict, position, look_at, fov_y: float, up=(0.0, 0.0, 1.0
     return box["x"] + (ndc_x + 1.0) / 2.0 * box["width"], box["y"] + (1.0 - ndc_y) / 2.0 * box["height"]
 
 
-def click_button(page, label: str, timeout_s: float = 15.0) -> None:
+def click_button(page, label: str, timeout_s: float = 60.0) -> None:
     """Click the panel button whose text is exactly `label`.
 
     The click is dispatched to the button itself: with software WebGL a page

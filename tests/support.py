@@ -72,6 +72,30 @@ def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) ->
         assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
 
 
+def run_main(*args: str) -> subprocess.CompletedProcess:
+    """`teleop ARGS...` through the CLI's entry point in this process: its exit code and what it wrote to
+    sys.stdout and sys.stderr. For flags' and files' errors, where a fresh process only adds ~1-2 s of imports;
+    a signal, a kill, or output written to file descriptors 1 and 2 directly still want `run_cli`."""
+    import io
+
+    from teleop.cli.entry import main
+
+    out, err = io.StringIO(), io.StringIO()
+    sigterm = signal.getsignal(signal.SIGTERM)  # main() makes SIGTERM end a command the way Ctrl-C does
+    environ = dict(os.environ)  # and a command may set variables for its own children (export: quiet_environment)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            try:
+                code = main(list(args))
+            except SystemExit as exc:  # argparse: a usage error (2) or --help (0)
+                code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        signal.signal(signal.SIGTERM, sigterm)
+        os.environ.clear()
+        os.environ.update(environ)
+    return subprocess.CompletedProcess(["teleop", *args], code, out.getvalue(), err.getvalue())
+
+
 def record_script(directory: Path, script: Path, *flags: str, **kwargs) -> dict:
     """`teleop run --device script:SCRIPT --record DIRECTORY FLAGS... --json` in a fresh process; its summary."""
     return run_json("run", "--device", f"script:{script}", "--record", str(directory), *flags, "--json", **kwargs)

@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 
-from tests.support import PICK, assert_one_line_error, run_cli, run_json
+from tests.support import PICK, assert_one_line_error, run_cli, run_json, run_main
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -142,10 +142,11 @@ def test_the_checkpoint_reads_the_objects_state_and_another_task_cannot_supply_i
 
 
 def test_a_missing_folder_and_bad_episodes_are_one_line(tmp_path):
-    assert_one_line_error(run_cli("eval", "--policy", str(tmp_path / "nope")), "no such policy folder")
-    assert_one_line_error(run_cli("eval", "--policy", str(tmp_path)), "no config.json")
+    """Through the CLI's entry point in this process (the tests above run `teleop eval` in fresh ones)."""
+    assert_one_line_error(run_main("eval", "--policy", str(tmp_path / "nope")), "no such policy folder")
+    assert_one_line_error(run_main("eval", "--policy", str(tmp_path)), "no config.json")
     for bad in ("0", "many"):
-        assert_one_line_error(run_cli("eval", "--policy", str(tmp_path), "--episodes", bad), "--episodes")
+        assert_one_line_error(run_main("eval", "--policy", str(tmp_path), "--episodes", bad), "--episodes")
 
 
 def test_a_trained_checkpoint_drives_a_served_session_until_taken_over(trained):

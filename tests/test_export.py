@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from tests.support import PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_json, write_script
+from tests.support import PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_main, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -248,8 +248,8 @@ def test_video_codecs_and_append_keeps_the_datasets_codec(recorded, exported, tm
 
     with pytest.raises(ExportError, match="video codec 'vp9'"):
         export_dataset(recorded["files"][:1], ExportOptions(**{**opts, "out": tmp_path / "vp9"}, vcodec="vp9"))
-    result = run_cli("export", str(recorded["files"][0]), "--out", str(tmp_path / "png"), "--repo-id", "test/png",
-                     "--no-video", "--vcodec", "h264")
+    result = run_main("export", str(recorded["files"][0]), "--out", str(tmp_path / "png"), "--repo-id", "test/png",
+                      "--no-video", "--vcodec", "h264")
     assert_one_line_error(result, "video codec", "without video")
     assert not (tmp_path / "png").exists()
 
@@ -310,40 +310,41 @@ def test_bimanual_concatenates_arms_and_names_wrist_cameras(tmp_path):
         assert ds[0][key].std() > 0.05
 
 
-# -- bad input -----------------------------------------------------------------
+# -- bad input: through the CLI's entry point in this process (run_main); the summary test above and the
+# LeRobot-less one below keep a fresh process each -----------------------------------------------------------
 
 
 def test_existing_out_without_append_is_refused(recorded, exported):
-    result = run_cli("export", str(recorded["dir"]), "--out", str(exported["out"]), "--repo-id", "test/lift")
+    result = run_main("export", str(recorded["dir"]), "--out", str(exported["out"]), "--repo-id", "test/lift")
     assert_one_line_error(result, str(exported["out"]), "already exists", "append")
 
 
 def test_unknown_camera_lists_the_cameras(recorded, tmp_path):
-    result = run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x", "--cameras", "front,side")
+    result = run_main("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x", "--cameras", "front,side")
     assert_one_line_error(result, "'side'", "front", "overhead", "wrist")
     assert not (tmp_path / "x").exists()
 
 
 def test_mixed_scenes_and_rates_are_listed(recorded, tmp_path):
     other = tmp_path / "other"
-    run_json("run", "--device", f"script:{recorded['fail_script']}", "--record", str(other), "--control-hz", "10", "--json")
-    run_json("run", "--device", f"script:{recorded['fail_script']}", "--record", str(other), "--scene", "stack",
-             "--control-hz", HZ, "--json")
-    result = run_cli("export", str(recorded["dir"]), str(other), "--out", str(tmp_path / "x"), "--repo-id", "t/x")
+    for flags in (["--control-hz", "10"], ["--scene", "stack", "--control-hz", HZ]):  # recorded in this process
+        recorded_other = run_main("run", "--device", f"script:{recorded['fail_script']}", "--record", str(other), *flags)
+        assert recorded_other.returncode == 0, recorded_other.stderr[-2000:]
+    result = run_main("export", str(recorded["dir"]), str(other), "--out", str(tmp_path / "x"), "--repo-id", "t/x")
     assert_one_line_error(result, "different robots, scenes or rates", "scene lift / 15 Hz", "scene lift / 10 Hz",
                           "scene stack / 15 Hz", "episode_000000.mcap")
 
 
 def test_bad_flags_and_files(recorded, tmp_path):
-    assert_one_line_error(run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x",
-                                  "--image-size", "224"), "image size '224'", "WIDTHxHEIGHT")
-    assert_one_line_error(run_cli("export", str(tmp_path / "nothing"), "--out", str(tmp_path / "x"), "--repo-id", "t/x"),
+    assert_one_line_error(run_main("export", str(recorded["dir"]), "--out", str(tmp_path / "x"), "--repo-id", "t/x",
+                                   "--image-size", "224"), "image size '224'", "WIDTHxHEIGHT")
+    assert_one_line_error(run_main("export", str(tmp_path / "nothing"), "--out", str(tmp_path / "x"), "--repo-id", "t/x"),
                           "no such file")
     (tmp_path / "plain").mkdir()
-    assert_one_line_error(run_cli("export", str(recorded["dir"]), "--out", str(tmp_path / "plain"), "--repo-id", "t/x",
-                                  "--append"), "not a LeRobot dataset")
-    assert_one_line_error(run_cli("export", str(recorded["root"] / "fail.json"), "--out", str(tmp_path / "x"),
-                                  "--repo-id", "t/x"), "fail.json")
+    assert_one_line_error(run_main("export", str(recorded["dir"]), "--out", str(tmp_path / "plain"), "--repo-id", "t/x",
+                                   "--append"), "not a LeRobot dataset")
+    assert_one_line_error(run_main("export", str(recorded["root"] / "fail.json"), "--out", str(tmp_path / "x"),
+                                   "--repo-id", "t/x"), "fail.json")
     assert not (tmp_path / "x").exists()
 
 
@@ -408,7 +409,7 @@ def test_act_policy_trains_on_exported_dataset_with_the_readme_command(exported,
 
 
 def test_cli_help_names_every_flag():
-    result = run_cli("export", "--help")
+    result = run_main("export", "--help")
     assert result.returncode == 0
     for flag in ("--out", "--repo-id", "--cameras", "--image-size", "--action", "--task", "--only-success",
                  "--no-video", "--vcodec", "--append", "--workers", "--ray"):

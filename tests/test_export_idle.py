@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from tests.support import ROOT, record_script, run_cli, write_script
+from tests.support import ROOT, record_script, run_cli, run_main, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"
@@ -48,6 +48,13 @@ def _opts(out, **kw) -> ExportOptions:
                          progress=False, **kw)
 
 
+@pytest.fixture(scope="module")
+def dropped(recorded, tmp_path_factory):
+    """The two picks exported in one process with --drop-idle: (summary, dataset folder); two tests compare with it."""
+    out = tmp_path_factory.mktemp("dropped") / "ds"
+    return export_dataset(recorded, _opts(out, drop_idle=True), log=lambda line: None), out
+
+
 def _rows(out) -> list[dict]:
     from lerobot.datasets import LeRobotDataset
 
@@ -68,14 +75,14 @@ def test_idle_mask_keeps_motion_and_drops_stillness():
 
 
 @pytest.mark.e2e  # LeRobot exports, rendered
-def test_drop_idle_leaves_out_the_pause_and_keeps_frames_whole(recorded, tmp_path):
+def test_drop_idle_leaves_out_the_pause_and_keeps_frames_whole(recorded, dropped, tmp_path):
     plain = export_dataset(recorded, _opts(tmp_path / "plain"), log=lambda line: None)
-    dropped = export_dataset(recorded, _opts(tmp_path / "dropped", drop_idle=True), log=lambda line: None)
+    dropped, dropped_out = dropped
     assert plain.idle_dropped == 0 and dropped.episodes == plain.episodes == 2
     assert dropped.frames + dropped.idle_dropped == plain.frames
     # The pause is 18 ticks at 15 Hz, the first few of them the arm settling (kept): most of it goes.
     assert dropped.idle_dropped >= 2 * 12, dropped.idle_dropped
-    a, b = _rows(tmp_path / "plain"), _rows(tmp_path / "dropped")
+    a, b = _rows(tmp_path / "plain"), _rows(dropped_out)
     assert len(b) == dropped.frames
     # Every kept frame is a recorded frame, images included (the worker's camera too), in order.
     position = 0
@@ -92,11 +99,11 @@ def test_drop_idle_leaves_out_the_pause_and_keeps_frames_whole(recorded, tmp_pat
             assert max(float((after[k] - before[k]).abs().max()) for k in KEYS) > IDLE_TOLERANCE
 
 
-def test_drop_idle_in_parallel_and_on_the_command_line(recorded, tmp_path):
-    serial = export_dataset(recorded, _opts(tmp_path / "one", drop_idle=True), log=lambda line: None)
+def test_drop_idle_in_parallel_and_on_the_command_line(recorded, dropped, tmp_path):
+    serial, serial_out = dropped
     parallel = export_dataset(recorded, _opts(tmp_path / "two", drop_idle=True, workers=2), log=lambda line: None)
     assert (parallel.frames, parallel.idle_dropped) == (serial.frames, serial.idle_dropped)
-    a, b = _rows(tmp_path / "one"), _rows(tmp_path / "two")
+    a, b = _rows(serial_out), _rows(tmp_path / "two")
     assert all(np.array_equal(x["action"].numpy(), y["action"].numpy()) for x, y in zip(a, b)) and len(a) == len(b)
     result = run_cli("export", str(recorded[0]), "--out", str(tmp_path / "cli"), "--repo-id", "t/idle", "--cameras", "none",
                      "--drop-idle")
@@ -121,6 +128,6 @@ def test_a_resume_must_ask_for_the_same_drop_idle(recorded, tmp_path):
 
 
 def test_help_names_the_flag():
-    result = run_cli("export", "--help")
+    result = run_main("export", "--help")  # in this process
     assert result.returncode == 0 and "--drop-idle" in result.stdout
     assert (ROOT / "docs" / "export.md").read_text().count("--drop-idle") >= 1

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.support import assert_one_line_error, column, open_dataset, record_script, run_cli, write_script
+from tests.support import assert_one_line_error, column, open_dataset, record_script, run_cli, run_main, write_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -132,8 +132,8 @@ def test_ray_export_matches_a_single_process_export(recorded, single, tmp_path):
 def test_bad_parallel_flags_are_one_line(recorded, tmp_path):
     out = str(tmp_path / "x")
     common = ("export", str(recorded["dir"]), "--out", out, "--repo-id", "t/x")
-    assert_one_line_error(run_cli(*common, "--workers", "0"), "--workers '0'", "1 or more")
-    assert_one_line_error(run_cli(*common, "--workers", "two"), "--workers 'two'")
+    assert_one_line_error(run_main(*common, "--workers", "0"), "--workers '0'", "1 or more")  # in this process
+    assert_one_line_error(run_main(*common, "--workers", "two"), "--workers 'two'")
     t0 = time.monotonic()
     result = run_cli(*common, "--ray", "127.0.0.1:9")  # nothing listens on the discard port
     assert_one_line_error(result, "cannot reach a Ray cluster at 127.0.0.1:9")

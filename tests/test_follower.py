@@ -28,7 +28,7 @@ from teleop.control.follower import Follower, check_pairing, open_follower, pars
 from teleop.control.session import Session
 from teleop.errors import UsageError
 from tests.servo_emulator import MOTOR_NAMES, FeetechEmulator
-from tests.support import ROOT, assert_one_line_error, run_cli, wait_until, write_script
+from tests.support import ROOT, assert_one_line_error, run_cli, run_main, wait_until, write_script
 
 pytestmark = pytest.mark.e2e
 
@@ -172,14 +172,14 @@ def test_serve_shows_the_follower_and_disables_torque_when_stopped(tmp_path: Pat
 
 
 def test_a_follower_pairs_only_with_its_own_robot(tmp_path: Path):
-    result = run_cli("run", "--device", "script:x.json", "--robot", "panda", "--follower", "so101_follower:/dev/ttyACM0")
+    result = run_main("run", "--device", "script:x.json", "--robot", "panda", "--follower", "so101_follower:/dev/ttyACM0")
     assert_one_line_error(result, "so101_follower", "so101", "panda")
 
 
 def test_a_missing_port_is_one_line(tmp_path: Path):
     script = write_script(tmp_path / "s.json", [{"duration": 0.5}])
-    result = run_cli("run", "--device", f"script:{script}", "--robot", "so101", "--record", str(tmp_path / "rec"),
-                     "--follower", f"so101_follower:{tmp_path / 'ttyNOPE'}")
+    result = run_main("run", "--device", f"script:{script}", "--robot", "so101", "--record", str(tmp_path / "rec"),
+                      "--follower", f"so101_follower:{tmp_path / 'ttyNOPE'}")
     assert_one_line_error(result, "ttyNOPE", "no such serial port")
     assert not (tmp_path / "rec").exists() or not any((tmp_path / "rec").iterdir())  # nothing was recorded
 

@@ -24,7 +24,7 @@ import teleop
 from replay.subtasks.sidecar import read_subtasks, sidecar_path
 from replay.subtasks.annotate import auto_subtasks
 from teleop.generate.generator import GenerateError, GenerateOptions, generate
-from tests.support import ROOT, assert_one_line_error, run_cli, run_json, write_script
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json, run_main, write_script
 
 SCRIPTS = {"lift": "lift_pick.json", "pick_place": "pick_place.json", "stack": "stack_pick.json", "door": "door_push.json"}
 GOALS = {"lift": 0.9, "pick_place": 0.8, "stack": 0.7}  # the issue's success-rate goals
@@ -109,7 +109,9 @@ def test_a_source_without_a_grasp_is_named(tmp_path):
 
 @pytest.mark.parametrize("task", ["lift", "pick_place", "stack"])
 def test_generation_reaches_the_goal_and_episodes_replay_exactly(task, sources, tmp_path):
-    seeds = 20
+    # 10 new seeds, every one tried once: the goal in tenths (bench/generate.py measures the rates over 100);
+    # on 1000-1019 lift and pick_place kept 20 of 20, stack 15 (8 of its first 10)
+    seeds = 10
     summary = generate(sources[task], GenerateOptions(out=tmp_path / "gen", num=seeds, seed=1000, workers=2,
                                                       max_attempts=seeds, progress=False))
     assert summary.attempts == seeds and summary.workers == 2 and summary.backend == "local"
@@ -128,21 +130,30 @@ def test_generation_reaches_the_goal_and_episodes_replay_exactly(task, sources, 
     assert all(np.linalg.norm(here - _cube_xy(teleop.load_episode(p))) > 1e-3 for p in sources[task])
 
 
-def test_cli_json_and_seed_order_do_not_depend_on_workers(sources, tmp_path):
-    runs = {}
-    for workers in (1, 2):
-        out = run_json("generate", *map(str, sources["lift"]), "--out", str(tmp_path / f"w{workers}"), "--num", "3",
-                       "--seed", "1000", "--workers", str(workers), "--json")
+def _generate_cli(sources: list[Path], out: Path, workers: int) -> dict:
+    """`teleop generate ... --num 3 --seed 1000 --workers N --json` in a fresh process; its JSON."""
+    return run_json("generate", *map(str, sources), "--out", str(out), "--num", "3", "--seed", "1000",
+                    "--workers", str(workers), "--json")
+
+
+@pytest.fixture(scope="module")
+def lift_two_workers(sources, tmp_path_factory) -> dict:
+    """Three lift episodes from seed 1000 by 2 local workers: what 1 worker and Ray must give again."""
+    return _generate_cli(sources["lift"], tmp_path_factory.mktemp("w2") / "gen", 2)
+
+
+def test_cli_json_and_seed_order_do_not_depend_on_workers(sources, lift_two_workers, tmp_path):
+    runs = {1: _generate_cli(sources["lift"], tmp_path / "w1", 1), 2: lift_two_workers}
+    for workers, out in runs.items():
         for key in ("attempts", "successes", "success_rate", "episodes_per_min", "workers", "files"):
             assert key in out
         assert out["workers"] == workers and out["successes"] == 3 and len(out["files"]) == 3
-        runs[workers] = out
     assert runs[1]["seeds"] == runs[2]["seeds"]
     steps = {w: [teleop.load_episode(f).steps for f in r["files"]] for w, r in runs.items()}
     assert steps[1] == steps[2]
 
 
-def test_on_a_local_ray_instance(sources, tmp_path):
+def test_on_a_local_ray_instance(sources, lift_two_workers, tmp_path):
     import ray  # the cluster extra (the test command installs it)
 
     ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR")
@@ -152,11 +163,10 @@ def test_on_a_local_ray_instance(sources, tmp_path):
         assert ray.is_initialized()
     finally:
         ray.shutdown()
-    local = generate(sources["lift"], GenerateOptions(out=tmp_path / "local", num=3, seed=1000, workers=2,
-                                                      progress=False))
+    local = lift_two_workers
     assert summary.backend == "ray" and summary.workers == 2
-    assert summary.successes == local.successes == 3 and summary.seeds == local.seeds
-    for a, b in zip(summary.files, local.files):
+    assert summary.successes == local["successes"] == 3 and summary.seeds == local["seeds"]
+    for a, b in zip(summary.files, local["files"], strict=True):
         ea, eb = teleop.load_episode(a), teleop.load_episode(b)
         assert ea.steps == eb.steps and np.array_equal(ea.state, eb.state)  # same episode, computed elsewhere
 
@@ -192,7 +202,8 @@ def test_bad_input_is_one_line_and_exit_2(case, sources, tmp_path):
     }[case]
     needle = {"mixed": "one scene", "num": "positive", "address": "127.0.0.1:1", "workers": "workers"}[case]
     t0 = time.monotonic()
-    result = run_cli(*argv, timeout=120)
+    # the unreachable cluster in a fresh process (Ray's client must not linger in this one); the rest in this one
+    result = run_cli(*argv, timeout=120) if case == "address" else run_main(*argv)
     assert_one_line_error(result, needle)
     assert time.monotonic() - t0 < 60
     assert result.stdout == ""

@@ -24,7 +24,7 @@ import pytest
 
 import teleop
 from teleop.generate.resume import JOURNAL
-from tests.support import ROOT, assert_one_line_error, run_cli, run_json
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json, run_main
 
 HZ = 30
 NUM = 5
@@ -147,8 +147,8 @@ def test_other_sources_or_options_are_refused_in_one_line(sources, tmp_path):
     out = tmp_path / "gen"
     run_json(*generate_argv(sources, out, "--num", "1", "--workers", "1", "--json"))
     other_seed = ["generate", *map(str, sources), "--out", str(out), "--seed", "2000", "--num", "1", "--workers", "1"]
-    assert_one_line_error(run_cli(*other_seed), "--seed", "--force-new")
-    assert_one_line_error(run_cli(*generate_argv(sources[:1], out, "--num", "1", "--workers", "1")), "sources")
+    assert_one_line_error(run_cli(*other_seed), "--seed", "--force-new")  # a fresh process; the other two in this one
+    assert_one_line_error(run_main(*generate_argv(sources[:1], out, "--num", "1", "--workers", "1")), "sources")
     assert len(kept_seeds(out)) == 1  # nothing written by the refused runs
 
     forced = run_json(*other_seed, "--force-new", "--json")
@@ -159,5 +159,5 @@ def test_other_sources_or_options_are_refused_in_one_line(sources, tmp_path):
     stray = tmp_path / "stray"
     stray.mkdir()
     (stray / "episode_000000.mcap").write_bytes(sources[0].read_bytes())
-    assert_one_line_error(run_cli(*generate_argv(sources, stray, "--num", "1", "--workers", "1")), "--force-new")
+    assert_one_line_error(run_main(*generate_argv(sources, stray, "--num", "1", "--workers", "1")), "--force-new")
     assert (stray / "episode_000000.mcap").read_bytes() == sources[0].read_bytes()

@@ -24,7 +24,7 @@ from teleop.control.session import Session
 from tests import browser as headless
 from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, wait_until
 
-STYLESHEET = ROOT / "teleop" / "web" / "static" / "teleop.css"
+STYLESHEET = ROOT / "teleop" / "web" / "shared" / "static" / "teleop.css"
 CAMPAIGN = 'name = "trial"\nout = "data"\nmax_sessions = 2\n[[task]]\nscene = "lift"\nepisodes = 5\n'
 PAGE_BACKGROUND = "rgb(22, 22, 26)"  # the stylesheet's --bg: what a page without it does not have
 
@@ -163,7 +163,7 @@ def test_the_review_buttons_write_verdicts_and_notes(review, browser, campaign_f
         page.wait_for_selector("body[data-ready='1']", timeout=60_000)
         first, second = page.locator("#rows tr").nth(0).get_attribute("data-id"), page.locator("#rows tr").nth(1).get_attribute("data-id")
         page.get_by_role("button", name="Reject", exact=True).click()
-        page.wait_for_selector(f"#rows tr[data-id='{first}'] td.verdict.reject", timeout=10_000)  # on the row at once
+        page.wait_for_selector(f"#rows tr[data-id='{first}'] td.verdict.reject", timeout=60_000)  # on the row at once
         page.wait_for_function("document.getElementById('status').textContent.includes('reject saved')", timeout=30_000)
         assert read_verdict(lift / first)["verdict"] == "reject"
         assert page.get_by_role("button", name="Reject", exact=True).get_attribute("aria-pressed") == "true"

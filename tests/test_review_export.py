@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from replay.review.verdicts import write_verdict
-from tests.support import PICK, assert_one_line_error, column, open_dataset, record_script, run_cli, run_json, write_script
+from tests.support import PICK, assert_one_line_error, column, open_dataset, record_script, run_cli, run_json, run_main, write_script
 
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
 HZ = "15"
@@ -85,7 +85,7 @@ def test_reject_flags_leave_out_the_flagged_and_a_bad_flag_is_one_line(reviewed)
     assert "exported 1 episode," in result.stdout
     assert "1 not accepted" in result.stdout and "1 flagged dropped" in result.stdout
     assert list(episodes_table(out)["review_verdict"]) == ["accept"]
-    bad = run_cli("export", str(reviewed["dir"]), "--out", str(reviewed["root"] / "x"), "--repo-id", "t/x",
-                  "--reject-flags", "wobbly")
+    bad = run_main("export", str(reviewed["dir"]), "--out", str(reviewed["root"] / "x"), "--repo-id", "t/x",
+                   "--reject-flags", "wobbly")  # in this process
     assert_one_line_error(bad, "--reject-flags wobbly", "not a quality flag", "dropped")
     assert not (reviewed["root"] / "x").exists()

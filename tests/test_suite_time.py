@@ -108,3 +108,70 @@ def test_on_xdist_workers_the_controller_times_each_marker_fails_over_budget_and
     assert quiet.returncode == 0 and "WARNING" not in quiet.stdout and "FAILED" not in quiet.stdout, quiet.stdout
     bad = pytest_run(tiny, "-n", "2", warn="soon")
     assert bad.returncode == 4 and "TELEOP_SUITE_WARN='soon': expected seconds" in bad.stderr
+
+
+GROUPED_CONFTEST = f"""
+import sys
+sys.path.insert(0, {str(ROOT)!r})
+import pytest
+from tests.conftest import xdist_group_of
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        item.add_marker(pytest.mark.e2e)
+        if group := xdist_group_of(item, "e2e"):
+            item.add_marker(pytest.mark.xdist_group(group))
+"""
+GROUPED_TESTS = '''
+import os
+import time
+import pytest
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    with open(os.environ["SETUPS_LOG"], "a") as log:
+        log.write(f"{os.getpid()}\\n")
+    time.sleep(0.5)
+    return 1
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_other(i):
+    time.sleep(0.3)
+
+
+def test_first(made):
+    assert made
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_more(i):
+    time.sleep(0.3)
+
+
+def test_second(made):
+    assert made
+
+
+def test_third(made):
+    assert made
+'''
+
+
+def test_tests_sharing_a_module_fixture_run_on_one_worker_and_make_it_once(tmp_path):
+    """run.sh's `--dist loadgroup` with tests/conftest.py's groups: a file's module-scoped fixture is made once, not
+    once per worker (pytest 9.2 ignores the group xdist 3.8 writes into a test's id: pyproject pins pytest below it)."""
+    (tmp_path / "suite").mkdir()
+    (tmp_path / "suite" / "test_shared.py").write_text(GROUPED_TESTS)
+    (tmp_path / "conftest.py").write_text(GROUPED_CONFTEST)
+    (tmp_path / "pytest.ini").write_text(INI)
+    log = tmp_path / "setups.log"
+    env = {**os.environ, "SETUPS_LOG": str(log)}
+    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-n", "3", "--dist", "loadgroup"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "11 passed" in done.stdout
+    assert len(log.read_text().split()) == 1, f"the module fixture was made on several workers: {log.read_text().split()}"

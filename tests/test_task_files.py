@@ -17,7 +17,7 @@ from replay.engine import verify_file
 from replay.episode import load_episode
 from replay.judge import judge_steps
 from scenes.tasks.registry import TASK_FILE_KEY, find_task
-from tests.support import ROOT, assert_one_line_error, record_script, run_cli, run_json
+from tests.support import ROOT, assert_one_line_error, record_script, run_cli, run_json, run_main
 
 TASK_TOML = '''
 name = "tin_in_tray"
@@ -184,18 +184,21 @@ BAD = {
 }
 
 
-# Two fresh `teleop` processes a case (seconds each, some building meshes or trying placements): one case runs
-# in `pytest -m unit`, the others in e2e.
+# `teleop scenes` through the CLI's entry point in this process, `teleop run` in a fresh process (seconds each,
+# some building meshes or trying placements; it also catches what the loading writes to fd 2): one case runs in
+# `pytest -m unit`, the others in e2e.
 @pytest.mark.parametrize("case", [pytest.param(c, marks=() if c == "unknown_field" else pytest.mark.e2e) for c in sorted(BAD)])
-def test_bad_task_file_gets_one_line_and_exit_2(case, tmp_path, cache):
+def test_bad_task_file_gets_one_line_and_exit_2(case, tmp_path, cache, monkeypatch):
     path = write_task(tmp_path / "t")
     (tmp_path / "t" / "broken.obj").write_text("v 0 0 0\nv 1 0 0\nf 1 2 9\nthis is not a mesh\n")
     edit, needle = BAD[case]
     bad = edit(TASK_TOML)
     assert bad != TASK_TOML
     path.write_text(bad)
-    result = run_cli("scenes", str(path), "--json", env=cache)
+    monkeypatch.setenv("TELEOP_CACHE", cache["TELEOP_CACHE"])
+    result = run_main("scenes", str(path), "--json")
     assert_one_line_error(result, needle)
+    assert needle in json.loads(result.stdout)["error"]
     result = run_cli("run", "--scene", str(path), "--device", f"script:{tmp_path / 't' / 'tin_in_tray.json'}", "--json", env=cache)
     assert_one_line_error(result, needle)
 

@@ -82,7 +82,7 @@ def viewer_page(episode: Path, log_path: Path):
         with playwright_api.sync_playwright() as p:
             browser = headless.launch(p)
             page = headless.open_page(browser, f"http://127.0.0.1:{port}", size=(900, 700))
-            page.get_by_text("Subtasks").first.wait_for(timeout=20000)
+            page.get_by_text("Subtasks").first.wait_for(timeout=60_000)
             yield page
             browser.close()
     finally:
@@ -112,7 +112,7 @@ def pick(page, label: str, option: str) -> None:
     page.get_by_role("option", name=option, exact=True).dispatch_event("click")
     page.wait_for_function("([l, o]) => [...document.querySelectorAll('input')].some("
                            "i => i.value === o && i.id && document.querySelector(`label[for='${i.id}']`)"
-                           "?.textContent.trim() === l)", arg=[label, option], timeout=10000)
+                           "?.textContent.trim() === l)", arg=[label, option], timeout=60_000)
 
 
 @pytest.mark.browser
@@ -192,14 +192,14 @@ def two_arm_episode(tmp_path_factory) -> Path:
 
 def listed(page, lines: int) -> None:
     """Wait until the Subtasks listing has `lines` lines (one per subtask of the arm being edited)."""
-    page.wait_for_function("(n) => document.querySelectorAll('li').length === n", arg=lines, timeout=15000)
+    page.wait_for_function("(n) => document.querySelectorAll('li').length === n", arg=lines, timeout=60_000)
 
 
 def on_bar(page, *segments: str) -> None:
     """Wait until the timeline bar is exactly these segments ('i: object, steps a-b', its titles)."""
     page.wait_for_function("(want) => { const got = [...document.querySelectorAll('div[title]')].map(d => d.title)"
                            ".filter(t => /^\\d+: .*, steps \\d+-\\d+$/.test(t));"
-                           " return JSON.stringify(got) === JSON.stringify(want); }", arg=list(segments), timeout=15000)
+                           " return JSON.stringify(got) === JSON.stringify(want); }", arg=list(segments), timeout=60_000)
 
 
 @pytest.mark.browser

@@ -250,7 +250,7 @@ def test_every_browser_drives_and_the_panel_names_the_one_driving(page, server, 
         (holder,) = status["page_keyboard"]["held"]
         assert driver == holder and driver.startswith("browser ")
         for shown in (page, second):  # the panel says so, in every browser
-            shown.get_by_text(f"driving: {driver}", exact=False).first.wait_for(state="attached", timeout=15000)
+            shown.get_by_text(f"driving: {driver}", exact=False).first.wait_for(state="attached", timeout=60_000)
         server.wait_for(lambda s: target(s)[2] > target(before)[2] + 0.01, timeout_s=60, what="the held r to raise the arm")
         second.keyboard.up("r")
         assert target(settled(server, "the rise"))[2] > target(before)[2] + 0.01
@@ -258,7 +258,7 @@ def test_every_browser_drives_and_the_panel_names_the_one_driving(page, server, 
         status = settled(server, "the first page's key")
         assert status["page_keyboard"]["driving"] != driver
         now = status["page_keyboard"]["driving"]
-        page.get_by_text(f"driving: {now}", exact=False).first.wait_for(state="attached", timeout=15000)
+        page.get_by_text(f"driving: {now}", exact=False).first.wait_for(state="attached", timeout=60_000)
     finally:
         second.context.close()
     server.wait_for(lambda s: s["page_keyboard"]["browsers"] == 1, what="the second page gone")
@@ -286,7 +286,7 @@ def test_a_browser_drawing_in_software_gets_the_cheap_view_and_others_keep_viser
     environment map (teleop/web/session_page/view_quality.py); a page that reports a GPU renderer keeps viser's look."""
     # this module's one page left (an earlier test's second page may still be closing), counted as software
     server.wait_for(lambda s: s["clients"] == 1 and s["software_views"] == 1, what="the page to report software WebGL")
-    page.get_by_text("1 drawing without a GPU", exact=False).first.wait_for(state="attached", timeout=15000)
+    page.get_by_text("1 drawing without a GPU", exact=False).first.wait_for(state="attached", timeout=60_000)
     # viser was asked, before it started, for half the display's resolution (its fixedDpr setting)...
     assert page.evaluate("new URLSearchParams(location.search).get('fixedDpr')") == "0.5"
     size = page.evaluate(VIEW_SIZE)

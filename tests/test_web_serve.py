@@ -144,7 +144,7 @@ def test_save_moves_to_the_next_seed_with_the_arm_home(page, server, record_dir)
     nxt = teleop.Session("lift", "panda", seed=seed + 1).controller
     assert np.allclose(after["target_pos"][0], nxt.target_pose()[0], atol=1e-6)  # the arm's target home
     assert np.allclose(after["objects"]["cube"][:2], nxt.data.qpos[9:11], atol=2e-3)  # the cube where seed+1 puts it
-    page.get_by_text(f"Next episode: seed {seed + 1}, from its initial state").first.wait_for(timeout=10_000)
+    page.get_by_text(f"Next episode: seed {seed + 1}, from its initial state").first.wait_for(timeout=60_000)
     assert load_episode(Path(after["saved_files"][-1])).meta.seed == seed
 
 
@@ -220,7 +220,7 @@ def test_closing_the_page_mid_episode_keeps_recording(server, browser, record_di
     other = headless.open_page(browser, server.url, size=PAGE_SIZE)
     try:
         headless.dismiss_toasts(other)
-        other.get_by_role("button", name="Stop", exact=True).wait_for(timeout=10000)
+        other.get_by_role("button", name="Stop", exact=True).wait_for(timeout=60_000)
         headless.click_button(other, "Stop")  # Stop saves
         status = server.wait_for(lambda s: s["episodes_saved"] == saved + 1 and not s["recording"], what="the save")
         newest = Path(status["saved_files"][-1])
