@@ -149,8 +149,13 @@ def test_the_phone_page_moves_the_target_only_while_the_clutch_is_held(browser, 
             page.evaluate(f"window.dispatchEvent(new DeviceOrientationEvent('deviceorientation', "
                           f"{{alpha: {alpha}, beta: 0, gamma: 0, absolute: true}}))")
 
-        orient(90)
-        server.wait_for(lambda s: "phone (orientation)" in s["devices"]["phone"], what="the phone to connect")
+        def connected(status: dict) -> bool:  # an orientation sent before the page's channel opened is not seen: send again
+            if "phone (orientation)" in status["devices"]["phone"]:
+                return True
+            orient(90)
+            return False
+
+        server.wait_for(connected, timeout_s=120, what="the phone to connect")
         start = server.status()["target_quat"][0]
         orient(120)  # turned, clutch up: nothing
         time.sleep(0.4)
