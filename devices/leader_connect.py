@@ -16,6 +16,7 @@ from pathlib import Path
 
 from devices.base import DeviceError
 from devices.serial_ports import port_problem
+from scenes.numbers import number_or_nan
 
 LEADER_TYPES = ("so101_leader", "so100_leader", "koch_leader")
 MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")  # LeRobot's names, ids 1-6
@@ -73,10 +74,7 @@ def parse_leader_spec(kind: str, arg: str, n_arms: int = 1) -> LeaderSpec:
             raise LeaderError(f"{word}: option {key}= needs a value")
     scale = None
     if "scale" in values:
-        try:
-            scale = float(values["scale"])
-        except ValueError:
-            scale = math.nan
+        scale = number_or_nan(values["scale"])
         if not (math.isfinite(scale) and scale > 0):
             raise LeaderError(f"{word}: scale= must be a positive number (got {values['scale']!r})")
     arm = 0

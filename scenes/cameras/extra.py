@@ -17,6 +17,7 @@ import mujoco
 
 from scenes.cameras.view import CameraPose, look_at_axes
 from scenes.errors import TeleopError, first_line
+from scenes.numbers import number_or_nan
 
 SYNTAX = "NAME=pos:x,y,z;look_at:x,y,z[;fovy:deg]"
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -66,10 +67,7 @@ def parse_camera(spec: str) -> ExtraCamera:
     eye, target = _vector(fields["pos"], "pos", spec), _vector(fields["look_at"], "look_at", spec)
     fovy = DEFAULT_FOVY
     if "fovy" in fields:
-        try:
-            fovy = float(fields["fovy"])
-        except ValueError:
-            fovy = math.nan
+        fovy = number_or_nan(fields["fovy"])
         if not 0.0 < fovy < 180.0:
             raise CameraSpecError(f"camera {spec!r}: fovy: expected degrees between 0 and 180, got {fields['fovy']!r}")
     try:

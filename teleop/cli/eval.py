@@ -8,6 +8,7 @@ import math
 import sys
 from pathlib import Path
 
+from scenes.numbers import number_or_nan
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
 from teleop.cli.variation_args import EVAL_WORDS, add_looks_seed_arg, add_range_args, variation_from
@@ -64,10 +65,7 @@ def _whole(flag: str, text: str, least: int) -> int:
 def _positive(flag: str, text: str | None) -> float | None:
     if text is None:
         return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = number_or_nan(text)
     if not (math.isfinite(value) and value > 0):
         raise UsageError(f"{flag} {text!r}: expected a positive number")
     return value

@@ -22,6 +22,7 @@ from mujoco import mju_dist3
 from devices.command import Command
 from scenes import Scene, actuator_for_joint
 from scenes.assembly.arena import TABLE_TOP
+from scenes.numbers import number_or_nan
 from teleop.control.ik import ArmIK
 
 TRACKING_HISTORY = 200_000  # ticks (about 2 h at 30 Hz)
@@ -340,10 +341,7 @@ class Controller:
                 return
         opening = command.gripper_opening
         if opening is not None:
-            try:
-                opening = float(opening)
-            except (TypeError, ValueError):
-                opening = math.nan
+            opening = number_or_nan(opening)
             if not math.isfinite(opening):
                 self.stats.ignored_commands += 1
                 self.note(f"ignored a non-finite gripper opening from {command.source or 'a device'}")

@@ -29,6 +29,7 @@ from devices.base import DeviceError
 from devices.joint_map import GripperRule, JointMap, JointMapError, JointRule, builtin_map_path, load_joint_map
 from devices.serial_ports import DIALOUT_HINT, port_problem
 from scenes.errors import first_line
+from scenes.numbers import number_or_nan
 from teleop.errors import UsageError
 
 if TYPE_CHECKING:  # annotations only
@@ -85,10 +86,7 @@ def parse_follower_spec(text: str) -> FollowerSpec:
         options[key] = value.strip()
     max_step = DEFAULT_MAX_STEP_DEG
     if "max_step" in options:
-        try:
-            max_step = float(options["max_step"])
-        except ValueError:
-            max_step = math.nan
+        max_step = number_or_nan(options["max_step"])
         if not (math.isfinite(max_step) and 0 < max_step <= 90):
             raise UsageError(f"--follower {text}: max_step must be degrees per tick, more than 0 and at most 90")
     calibration = Path(options["calibration"]).expanduser() if "calibration" in options else None
