@@ -2,7 +2,8 @@
 # The loop, measured (issue 21): a policy trained on the tool's data, evaluated on 50 new seeds.
 #
 #   bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR]
-#                       [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N] [--work DIR]
+#                       [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N]
+#                       [--max-seconds T] [--work DIR]
 #
 #   1. K source demos (seeds 0..K-1) from the task's solving script (--humanlike: the same script with a
 #      person's pauses, overshoots and corrections, bench/humanlike.py);
@@ -16,12 +17,13 @@
 #      learning rate of 1e-4 (pick_place, stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
 #      averages its chunks' predictions for each tick with weights exp(-C i), i = 0 the oldest (ACT's temporal
 #      ensembling; C = 0.01, pick_place and stack 0.1); 18,000 steps (handover 9,000); dropout P in the transformer (default none, see below);
-#   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json).
+#   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json), each episode
+#      failed after T simulated seconds (--max-seconds, default 20 as in `teleop eval`).
 # Prints one JSON object on stdout: task, demos, sources, humanlike, images, action, lr, schedule, ensemble, dropout, drop_idle, steps,
 # train_seconds, success_rate, ci95, failure_breakdown. Progress and the tools' logs go to stderr. Steps already done in
 # WORK with the same settings are not redone; a step whose settings changed is redone, with every step after it.
 set -euo pipefail
-usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N] [--work DIR]"
+usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N] [--max-seconds T] [--work DIR]"
 task=${1:?$usage}
 shift
 demos=""
@@ -36,6 +38,7 @@ schedule=""
 ensemble=""
 dropout=0
 episodes=50
+max_seconds=20
 work=""
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -51,6 +54,7 @@ while [ $# -gt 0 ]; do
         --ensemble) ensemble=${2:?$usage}; shift 2 ;;
         --dropout) dropout=${2:?$usage}; shift 2 ;;
         --episodes) episodes=${2:?$usage}; shift 2 ;;
+        --max-seconds) max_seconds=${2:?$usage}; shift 2 ;;
         --work) work=${2:?$usage}; shift 2 ;;
         *) echo "train_eval.sh: unknown option $1 ($usage)" >&2; exit 2 ;;
     esac
@@ -91,6 +95,8 @@ case "$action" in joint|ee_pose|ee_delta) ;; *) echo "train_eval.sh: --action mu
 case "$schedule" in constant|cosine) ;; *) echo "train_eval.sh: --schedule must be constant or cosine" >&2; exit 2 ;; esac
 [[ "$lr" =~ ^[0-9.]+(e-?[0-9]+)?$ ]] || { echo "train_eval.sh: --lr must be a number, such as 1e-4" >&2; exit 2; }
 [[ "$dropout" =~ ^(0(\.[0-9]*)?|\.[0-9]+)$ ]] || { echo "train_eval.sh: --dropout must be a number from 0 to below 1, such as 0.1" >&2; exit 2; }
+[[ "$max_seconds" =~ ^([0-9]+(\.[0-9]*)?|\.[0-9]+)$ ]] && [[ ! "$max_seconds" =~ ^[0.]+$ ]] \
+    || { echo "train_eval.sh: --max-seconds must be simulated seconds above 0, such as 20" >&2; exit 2; }
 [[ "$ensemble" =~ ^-?[0-9.]+(e-?[0-9]+)?$ ]] || { echo "train_eval.sh: --ensemble must be a number, such as 0.01" >&2; exit 2; }
 for n in "$demos" "$steps" "$sources" "$episodes"; do
     [[ "$n" =~ ^[1-9][0-9]*$ ]] || { echo "train_eval.sh: --demos, --steps, --sources and --episodes take a whole number above 0, not '$n'" >&2; exit 2; }
@@ -119,7 +125,7 @@ keys=("task=$task sources=$sources humanlike=$humanlike")
 keys+=("${keys[0]} demos=$demos seed=$gen_seed")
 keys+=("${keys[1]} action=$action images=$images drop_idle=$drop_idle")
 keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64} device=$device")
-keys+=("${keys[3]} episodes=$episodes")
+keys+=("${keys[3]} episodes=$episodes$([ "$max_seconds" != 20 ] && echo " max_seconds=$max_seconds")")
 steps_done=(src gen ds train eval)  # each step's name, and what it leaves in WORK when it is done:
 outputs=(src gen ds train_seconds eval.json)
 stale=0
@@ -201,7 +207,7 @@ if [ ! -f eval.json ]; then
     # over 5 min with the default threads, against 50 s with one
     OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} \
     "$teleop" eval --policy train/checkpoints/last/pretrained_model --scene "$task" --robot "$robot" --episodes "$episodes" --seed 1000 \
-        --device "$device" --json > eval.json.tmp
+        --max-seconds "$max_seconds" --device "$device" --json > eval.json.tmp
     mv eval.json.tmp eval.json
     done_step 4
 fi

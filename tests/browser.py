@@ -163,6 +163,35 @@ def click_button(page, label: str, timeout_s: float = 60.0) -> None:
     button.dispatch_event("click", timeout=timeout_s * 1000)
 
 
+def click_until(page, label: str, done, timeout_s: float = 120.0, what: str = "the click's effect",
+                again_s: float = 20.0) -> None:
+    """Click the panel button `label` until `done()` is true; fails naming `what` after `timeout_s`.
+
+    For a button whose click may be repeated (Close, Open: a second click asks for what the first did). A click
+    made while a loaded page was still catching up with its server (or reconnecting) can be lost; the page is
+    then clicked again every `again_s` without the effect.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        click_button(page, label, timeout_s=max(1.0, deadline - time.monotonic()))
+        again = min(deadline, time.monotonic() + again_s)
+        while time.monotonic() < again:
+            if done():
+                return
+            time.sleep(0.1)
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s clicking {label!r}, waiting for {what}")
+
+
+def pick(page, label: str, option: str, timeout_s: float = 60.0) -> None:
+    """Choose `option` in the panel dropdown labelled `label` and wait until the page shows it chosen."""
+    page.get_by_label(label, exact=True).dispatch_event("click", timeout=timeout_s * 1000)
+    page.get_by_role("option", name=option, exact=True).dispatch_event("click", timeout=timeout_s * 1000)
+    page.wait_for_function("([l, o]) => [...document.querySelectorAll('input')].some("
+                           "i => i.value === o && i.id && document.querySelector(`label[for='${i.id}']`)"
+                           "?.textContent.trim() === l)", arg=[label, option], timeout=timeout_s * 1000)
+
+
 def hold_until(page, key: str, done, timeout_s: float = 120.0, what: str = "the held key's effect",
                press_again_s: float = 15.0) -> None:
     """Hold `key` in `page` until `done()` is true, then let go; fails naming `what` after `timeout_s`.

@@ -99,15 +99,21 @@ E2E_FILES = {
 }
 
 
-def _uses_chromium(item: pytest.Item) -> bool:
+@functools.cache
+def _source_of(function) -> str:
+    """A test function's source ("" when there is none): read once for all its parametrized items."""
     import inspect
 
+    try:
+        return inspect.getsource(function)
+    except (OSError, TypeError):
+        return ""
+
+
+def _uses_chromium(item: pytest.Item) -> bool:
     if "browser" in getattr(item, "fixturenames", ()):
         return True
-    try:
-        source = inspect.getsource(item.function)
-    except (OSError, TypeError, AttributeError):
-        return False
+    source = _source_of(getattr(item, "function", None))
     return "headless.launch" in source or "sync_playwright" in source
 
 
@@ -119,14 +125,9 @@ E2E_SOURCE = re.compile(r"SIGKILL|\bkill -9\b|\(\s*[\"'](export|generate|eval)[\
 
 
 def _is_e2e(item: pytest.Item) -> bool:
-    import inspect
-
     if item.get_closest_marker("e2e") or item.path.name in E2E_FILES or E2E_FIXTURES & set(getattr(item, "fixturenames", ())):
         return True
-    try:
-        return bool(E2E_SOURCE.search(inspect.getsource(item.function)))
-    except (OSError, TypeError, AttributeError):
-        return False
+    return bool(E2E_SOURCE.search(_source_of(getattr(item, "function", None))))
 
 
 # --- parallel runs (pytest-xdist, `--dist loadgroup`: run.sh) ----------------------------------------------------
@@ -152,24 +153,42 @@ def module_scoped_fixtures(path: Path) -> frozenset[str]:
     return frozenset(names)
 
 
-def xdist_group_of(item: pytest.Item, marker: str) -> str | None:
-    """The xdist group of a test that uses a module-scoped fixture (its file, and "-unit" for a unit test), else None."""
+# The browser tests are one group of their own, "browser", with the tests of their files that share a fixture with
+# them: one Chromium at a time. Three at once (each drawing its scene with software WebGL on a 2-core machine)
+# starved each other's pages, which then lagged their servers by tens of seconds. tests/suite_time.py starts the
+# group right after the unit tests, so it runs beside the e2e tests instead of after them.
+BROWSER_GROUP = "browser"
+
+
+def xdist_group_of(item: pytest.Item, marker: str, browser_files: set[Path] = frozenset()) -> str | None:
+    """The xdist group of a test: "browser" for a browser test, and for a non-unit test of a file with browser
+    tests that shares a module-scoped fixture; otherwise, for a test that uses a module-scoped fixture, its
+    file (and "-unit" for a unit test); else None (any free worker)."""
+    if marker == "browser":
+        return BROWSER_GROUP
     shared = (module_scoped_fixtures(item.path) | CONFTEST_MODULE_FIXTURES) & set(getattr(item, "fixturenames", ()))
-    return (f"{item.path.stem}-unit" if marker == "unit" else item.path.stem) if shared else None
+    if not shared:
+        return None
+    if marker == "unit":
+        return f"{item.path.stem}-unit"
+    return BROWSER_GROUP if item.path in browser_files else item.path.stem
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups and tests/suite_time.py orders by marker
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test gets exactly one of the markers unit, browser, e2e (browser wins over e2e), and its xdist group."""
+    markers = {}
     for item in items:
         if item.get_closest_marker("browser") or _uses_chromium(item):
-            marker = "browser"
+            markers[item] = "browser"
         elif _is_e2e(item):
-            marker = "e2e"
+            markers[item] = "e2e"
         else:
-            marker = "unit"
-        item.add_marker(getattr(pytest.mark, marker))
-        if (group := xdist_group_of(item, marker)) and not item.get_closest_marker("xdist_group"):
+            markers[item] = "unit"
+        item.add_marker(getattr(pytest.mark, markers[item]))
+    browser_files = {item.path for item, marker in markers.items() if marker == "browser"}
+    for item, marker in markers.items():
+        if (group := xdist_group_of(item, marker, browser_files)) and not item.get_closest_marker("xdist_group"):
             item.add_marker(pytest.mark.xdist_group(group))
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import lerobot.datasets.compute_stats as compute_stats
 from replay import load_episode, replay_states
 from replay.export.stats import image_stats
 from replay.render import FastRenderer
@@ -33,6 +32,14 @@ def frames(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def compute_stats():
+    """LeRobot's statistics module, imported when a test runs: at collection it cost every worker seconds (torch)."""
+    import lerobot.datasets.compute_stats as module
+
+    return module
+
+
 def _feed(stats, images) -> dict:
     for image in images:  # as LeRobot's encoder thread feeds them: (H*W, 3) uint8
         stats.update(image.reshape(-1, 3))
@@ -40,7 +47,7 @@ def _feed(stats, images) -> dict:
 
 
 @pytest.mark.parametrize("camera", ["front", "wrist"])
-def test_counted_stats_equal_lerobots(frames, camera):
+def test_counted_stats_equal_lerobots(frames, camera, compute_stats):
     images = frames[camera]
     assert len(images) > 20 and images[0].dtype == np.uint8
     theirs = _feed(compute_stats.RunningQuantileStats(), images)
@@ -67,7 +74,7 @@ def test_counted_stats_equal_lerobots(frames, camera):
     np.testing.assert_allclose(o["std"], pixels.std(axis=0), atol=0.01)
 
 
-def test_other_dtypes_go_to_lerobots_code(frames):
+def test_other_dtypes_go_to_lerobots_code(frames, compute_stats):
     floats = [f.reshape(-1, 3).astype(np.float32) / 255 for f in frames["front"][:5]]
     theirs = compute_stats.RunningQuantileStats()
     with image_stats():

@@ -132,7 +132,9 @@ def test_an_interrupted_run_disables_torque(tmp_path: Path, sig: int):
     arm, cal = start_follower(tmp_path)
     with arm:
         script = write_script(tmp_path / "s.json", [{"duration": 120.0, "move": [0.0, 0.05, 0.0]}])
-        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        # PYTHONFAULTHANDLER: should it hang after the signal, SIGABRT makes it print where each thread waits
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               "PYTHONFAULTHANDLER": "1"}
         proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", "--device", f"script:{script}", "--robot", "so101",
                                  "--follower", spec_of(arm, cal)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
@@ -141,7 +143,12 @@ def test_an_interrupted_run_disables_torque(tmp_path: Path, sig: int):
             assert proc.poll() is None, proc.communicate()[1][-2000:]
             assert not any(w["value"] == 0 for w in arm.torque_log() if w["t"] > goal_rows(arm)[0][0])
             proc.send_signal(sig)
-            _, err = proc.communicate(timeout=60)
+            try:
+                _, err = proc.communicate(timeout=180)
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGABRT)
+                _, err = proc.communicate(timeout=30)
+                raise AssertionError(f"teleop run did not end within 180 s of {sig.name}; its threads:\n{err[-6000:]}")
         finally:
             if proc.poll() is None:
                 proc.kill()

@@ -15,10 +15,6 @@ import pytest
 from replay import load_episode, resimulate
 from tests.support import PICK, record_script, run_json
 
-# robomimic 0.3.0 is installed by `./run.sh test` (pip --no-deps: its egl_probe dependency needs a compiler).
-import robomimic.utils.obs_utils as ObsUtils
-from robomimic.utils.dataset import SequenceDataset
-
 OBS_KEYS = ("qpos", "qvel", "ee_pose", "ee_target", "gripper")
 OUTCOME = {"success", "complete", "steps"}
 PER_EPISODE = OUTCOME | {"start_time", "episode_index", "wall_time", "teleop_version", "platform", "python_version"}
@@ -36,7 +32,12 @@ def recorded(tmp_path_factory) -> dict[str, Path]:
     return {**paths, "converted": converted}
 
 
-def _dataset(path: Path) -> SequenceDataset:
+def _dataset(path: Path):
+    """robomimic's SequenceDataset on `path`. robomimic 0.3.0 is installed by `./run.sh test` (pip --no-deps: its
+    egl_probe dependency needs a compiler); imported here, not at collection, where torch cost every worker seconds."""
+    import robomimic.utils.obs_utils as ObsUtils
+    from robomimic.utils.dataset import SequenceDataset
+
     ObsUtils.initialize_obs_modality_mapping_from_dict({"low_dim": list(OBS_KEYS)})
     return SequenceDataset(hdf5_path=str(path), obs_keys=OBS_KEYS, dataset_keys=("actions", "rewards", "dones"),
                            load_next_obs=True, hdf5_cache_mode="low_dim")

@@ -161,6 +161,7 @@ def test_third(made):
 '''
 
 
+@pytest.mark.e2e  # a pytest run on 3 xdist workers: four processes, seconds of the quick suite's time
 def test_tests_sharing_a_module_fixture_run_on_one_worker_and_make_it_once(tmp_path):
     """run.sh's `--dist loadgroup` with tests/conftest.py's groups: a file's module-scoped fixture is made once, not
     once per worker (pytest 9.2 ignores the group xdist 3.8 writes into a test's id: pyproject pins pytest below it)."""
@@ -175,3 +176,22 @@ def test_tests_sharing_a_module_fixture_run_on_one_worker_and_make_it_once(tmp_p
     assert done.returncode == 0, done.stdout + done.stderr
     assert "11 passed" in done.stdout
     assert len(log.read_text().split()) == 1, f"the module fixture was made on several workers: {log.read_text().split()}"
+
+
+def test_browser_tests_are_one_group_with_the_tests_sharing_their_fixtures():
+    """One Chromium at a time: every browser test is in the "browser" group, with the e2e tests of its file that
+    share a module fixture with it (made once); a test sharing nothing goes to any free worker."""
+    from types import SimpleNamespace
+
+    from tests.conftest import BROWSER_GROUP, xdist_group_of
+
+    replay = ROOT / "tests" / "test_web_replay.py"  # its `episode` fixture is module-scoped
+
+    def test(*fixtures: str) -> SimpleNamespace:
+        return SimpleNamespace(path=replay, fixturenames=list(fixtures))
+
+    assert xdist_group_of(test("tmp_path"), "browser", {replay}) == BROWSER_GROUP == "browser"
+    assert xdist_group_of(test("episode"), "e2e", {replay}) == "browser"
+    assert xdist_group_of(test("episode"), "e2e", set()) == "test_web_replay"  # a file without browser tests
+    assert xdist_group_of(test("tmp_path"), "e2e", {replay}) is None
+    assert xdist_group_of(test("episode"), "unit", {replay}) == "test_web_replay-unit"

@@ -190,16 +190,21 @@ def test_two_pages_see_the_same_session(page, server, browser):
         headless.dismiss_toasts(second)
         before = [headless.frames_received(p) for p in (page, second)]
         updates = server.status()["web_updates"]
-        headless.click_button(second, "Close")  # the second page drives the same robot...
-        server.wait_for(lambda s: s["gripper_open"] == [False] and s["web_updates"] > updates + 5, what="the fingers to move")
+
+        def closed() -> bool:
+            status = server.status(missing_ok=True)
+            return status.get("gripper_open") == [False] and status.get("web_updates", 0) > updates + 5
+
+        # the second page drives the same robot...
+        headless.click_until(second, "Close", closed, what="the fingers to move")
 
         def gained() -> list[int]:
             return [headless.frames_received(p) - b for p, b in zip((page, second), before)]
 
         # ...and both see it move (waited for: a loaded machine hands a page its messages late)
         assert wait_until(lambda: min(gained()) >= 5, 60), f"a page missed the motion: {gained()} messages"
-        headless.click_button(page, "Open")
-        server.wait_for(lambda s: s["gripper_open"] == [True], what="the first page's click")
+        headless.click_until(page, "Open", lambda: server.status(missing_ok=True).get("gripper_open") == [True],
+                             what="the first page's click")
         status = server.status()
         assert status["loop_hz"] > 0.8 * status["control_hz"]
     finally:

@@ -134,17 +134,15 @@ def add_object(spec: mujoco.MjSpec, obj: ObjectDef, geo: Geometry, pos: list[flo
         body.add_site(name=f"{name}_inside", pos=[0, 0, height / 2], size=[hx, hy, height / 2], type=mujoco.mjtGeom.mjGEOM_BOX,
                       rgba=[0, 0, 0, 0], group=5)
     else:  # mesh: the mesh is seen, its convex parts collide
-        from scenes.assembly.mesh_collision import parts_obj_bytes
-
-        v, f = geo.mesh  # type: ignore[misc]
+        visual_obj, part_objs = geo.obj_files()
         visual = f"task_{name}_visual.obj"
-        assets[visual] = parts_obj_bytes([(v, f)])[0]
+        assets[visual] = visual_obj
         spec.add_mesh(name=f"{name}_visual", file=visual, inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL)
         body.add_geom(name=f"{name}_visual", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"{name}_visual", rgba=rgba,
                       contype=0, conaffinity=0, group=2, density=0.0)
         parts = geo.parts or []
         part_mass = {"mass": float(mass) / len(parts)} if mass is not None else {"density": float(density if density is not None else 400.0)}
-        for i, data in enumerate(parts_obj_bytes(parts)):
+        for i, data in enumerate(part_objs):
             file = f"task_{name}_part{i}.obj"
             assets[file] = data
             spec.add_mesh(name=f"{name}_part{i}", file=file)

@@ -111,6 +111,7 @@ class FileTask(Task):
         check_arms(self.subtasks, TWO_ARMS if self.needs_bimanual else ("",), where)
         self.constraints = read_constraints(raw.get("constraint", []), self.subtasks, where)
         self._judges: dict[int, tuple[mujoco.MjModel, Judge]] = {}
+        self._geometries: dict[Units, dict[str, Geometry]] = {}  # by units: a reset builds the scene anew
         self._held: dict[int, tuple[float, float | None]] = {}
         self._bundle: dict[str, Any] | None = None
         self._check()
@@ -154,9 +155,17 @@ class FileTask(Task):
         return Units(size=layout.size, spread=layout.spread, reach=layout.reach, scale=scale)
 
     def geometries(self, layout: Layout) -> dict[str, Geometry]:
-        """Every object's shape at `layout` (the same for every seed)."""
+        """Every object's shape at `layout` (the same for every seed): resolved once per units for this task.
+
+        Every reset and every new seed builds the scene again, and a mesh object's shape is a mesh and its
+        convex parts read from disk (a Gymnasium check of one library task made 192 such reads, 2.4 s). A mesh
+        file changed on disk is read again by the next process, not by this one.
+        """
         u = self.units(layout)
-        return {obj.name: object_geometry(obj, u) for obj in self.objects}
+        geos = self._geometries.get(u)
+        if geos is None:
+            geos = self._geometries[u] = {obj.name: object_geometry(obj, u) for obj in self.objects}
+        return dict(geos)
 
     def place(self, layout: Layout, rng: np.random.Generator,
               geos: dict[str, Geometry] | None = None) -> tuple[dict[str, Placed], dict[str, Geometry]]:
@@ -177,6 +186,10 @@ class FileTask(Task):
         if assets:
             spec.assets = {**spec.assets, **assets}
         return assets
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (to a worker) without the shapes resolved here: an mjcf object's MjSpec does not pickle."""
+        return {**self.__dict__, "_geometries": {}}
 
     def initial_joints(self) -> dict[str, float]:
         """Joint positions (rad or m) the file sets for its mjcf objects (`joints = {...}`)."""
