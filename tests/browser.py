@@ -261,6 +261,7 @@ class ServeProcess:
         command = [sys.executable, "-m", "teleop", "serve", "--port", str(self.port),
                    "--status-file", str(self.status_file), *args]
         self._log = open(self.log_file, "w")
+        self.status_file.unlink(missing_ok=True)  # a server before on this port (a restart) left its own
         self.proc = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT,
                                      env={**os.environ, **(env or {})}, cwd=Path(__file__).resolve().parents[2])
         deadline = time.monotonic() + ready_timeout_s
@@ -268,7 +269,7 @@ class ServeProcess:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"teleop serve exited with {self.proc.returncode}: {self.log()[-2000:]}")
             status = self.status(missing_ok=True)
-            if status and status.get("tick", 0) > 0:
+            if status and status.get("tick", 0) > 0 and status.get("pid") == self.proc.pid:
                 return
             time.sleep(0.2)
         self.stop()

@@ -154,9 +154,10 @@ def module_scoped_fixtures(path: Path) -> frozenset[str]:
 
 
 # The browser tests are one group of their own, "browser", with the tests of their files that share a fixture with
-# them: one Chromium at a time. Three at once (each drawing its scene with software WebGL on a 2-core machine)
-# starved each other's pages, which then lagged their servers by tens of seconds. tests/suite_time.py starts the
-# group right after the unit tests, so it runs beside the e2e tests instead of after them.
+# them: one Chromium at a time. Run last, three at once (each drawing its scene with software WebGL on a 2-core
+# machine), they starved each other's pages: in CI a replay page lagged its server past the episode's end, and
+# an annotate page lost its listing for 30 s. tests/suite_time.py starts the group right after the unit tests,
+# so it runs beside the e2e tests instead of after them.
 BROWSER_GROUP = "browser"
 
 

@@ -135,9 +135,12 @@ def test_an_interrupted_run_disables_torque(tmp_path: Path, sig: int):
         # PYTHONFAULTHANDLER: should it hang after the signal, SIGABRT makes it print where each thread waits
         env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                "PYTHONFAULTHANDLER": "1"}
+        # Ctrl-C as in a terminal: a suite started in the background (`cmd &` in a script) runs with SIGINT ignored,
+        # which the run would inherit and keep, as a background job does
         proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", "--device", f"script:{script}", "--robot", "so101",
                                  "--follower", spec_of(arm, cal)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+                                stderr=subprocess.PIPE, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             wait_until(lambda: len(goal_rows(arm)) >= 10 or proc.poll() is not None, 120, "goals sent to the follower")
             assert proc.poll() is None, proc.communicate()[1][-2000:]

@@ -41,7 +41,8 @@ DEFAULT_MAX_STEP_DEG = 5.0  # degrees per tick
 SPEC_KEYS = ("id", "calibration", "max_step")
 TRACKING_GAP_DEG = 3.0  # tracking: nothing held back by the step limit, every arm joint this close (or max_step)
 RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
-PING_TRIES = 3  # a servo that does not answer this many pings is missing
+PING_TRIES = 3  # a servo that does not answer this many pings, over at least PING_PATIENCE_S, is missing
+PING_PATIENCE_S = 0.3  # seconds: one ping waits ~35 ms for its answer, which a busy USB adapter or host can miss
 CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus
 _CLAMP_WARNING = "Relative goal position magnitude had to be clamped"  # LeRobot logs this on every clamped send
 
@@ -162,16 +163,21 @@ class _DropClampWarnings(logging.Filter):
 
 
 def _ping(bus: Any, motor: str) -> int | None:
-    """A servo's model number, or None if it does not answer; a garbled answer is asked again (the Feetech
-    SDK raises IndexError on a short status packet)."""
-    for _ in range(PING_TRIES):
+    """A servo's model number, or None if it does not answer PING_TRIES pings over PING_PATIENCE_S; a garbled
+    answer is asked again (the Feetech SDK raises IndexError on a short status packet)."""
+    give_up = time.monotonic() + PING_PATIENCE_S
+    tries = 0
+    while True:
         try:
             model = bus.ping(motor)
         except Exception:  # noqa: BLE001
             model = None
+        tries += 1
         if model is not None:
             return model
-    return None
+        if tries >= PING_TRIES and time.monotonic() >= give_up:
+            return None
+        time.sleep(0.01)  # a port that fails at once is not asked in a busy loop
 
 
 def _release(robot: Any) -> None:
