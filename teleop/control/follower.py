@@ -41,8 +41,9 @@ DEFAULT_MAX_STEP_DEG = 5.0  # degrees per tick
 SPEC_KEYS = ("id", "calibration", "max_step")
 TRACKING_GAP_DEG = 3.0  # tracking: nothing held back by the step limit, every arm joint this close (or max_step)
 RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
-PING_TRIES = 3  # a servo that does not answer this many pings, over at least PING_PATIENCE_S, is missing
-PING_PATIENCE_S = 0.3  # seconds: one ping waits ~35 ms for its answer, which a busy USB adapter or host can miss
+PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
+PING_PATIENCE_S = 1.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
+# host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
 CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus
 _CLAMP_WARNING = "Relative goal position magnitude had to be clamped"  # LeRobot logs this on every clamped send
 
@@ -162,10 +163,9 @@ class _DropClampWarnings(logging.Filter):
         return not str(record.msg).startswith(_CLAMP_WARNING)
 
 
-def _ping(bus: Any, motor: str) -> int | None:
-    """A servo's model number, or None if it does not answer PING_TRIES pings over PING_PATIENCE_S; a garbled
-    answer is asked again (the Feetech SDK raises IndexError on a short status packet)."""
-    give_up = time.monotonic() + PING_PATIENCE_S
+def _ping(bus: Any, motor: str, give_up: float) -> int | None:
+    """A servo's model number, or None if it answers none of PING_TRIES pings, nor any more until `give_up`
+    (time.monotonic()); a garbled answer is asked again (the Feetech SDK raises IndexError on a short status packet)."""
     tries = 0
     while True:
         try:
@@ -290,7 +290,8 @@ class Follower:
         except Exception as exc:  # noqa: BLE001
             raise _open_error(spec, exc) from None
         try:
-            found = {name: _ping(bus, name) for name in bus.motors}
+            give_up = time.monotonic() + PING_PATIENCE_S
+            found = {name: _ping(bus, name, give_up) for name in bus.motors}
             silent = [name for name, model in found.items() if model is None]
             if len(silent) == len(found):
                 raise DeviceError(f"{spec.port}: no servo answered (ids 1-6): is the follower powered and on this port?")
