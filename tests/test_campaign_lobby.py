@@ -14,7 +14,7 @@ import pytest
 
 from teleop.campaign.file import load_campaign
 from teleop.campaign.ledger import issue_invites
-from teleop.campaign.lobby import JOIN_BURST, Lobby, start_lobby
+from teleop.campaign.lobby import JOIN_BURST, JOIN_RATE, Bucket, Lobby, start_lobby
 from teleop.web.shared.access import TokenThrottle
 
 ADMIN, JOIN = "admin-token-1", "join-token-1"
@@ -101,9 +101,22 @@ def test_joining_paused_is_refused_until_resumed(lobby):
     assert not lobby_.paused
 
 
+def test_the_join_bucket_allows_a_burst_then_its_rate(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr("teleop.campaign.lobby.time.monotonic", lambda: now[0])
+    bucket = Bucket(JOIN_RATE, JOIN_BURST)
+    assert sum(bucket.take() for _ in range(int(JOIN_BURST) + 10)) == int(JOIN_BURST)
+    now[0] += 1.0  # one second refills JOIN_RATE tokens, no more
+    assert sum(bucket.take() for _ in range(int(JOIN_BURST))) == int(JOIN_RATE)
+    now[0] += 3600.0  # a long quiet spell refills the burst, never beyond it
+    assert sum(bucket.take() for _ in range(int(JOIN_BURST) + 10)) == int(JOIN_BURST)
+
+
 def test_a_flood_of_joins_is_cut_to_the_rate(lobby):
     lobby_, port = lobby
     lobby_.paused = True  # every join that passes the rate is then refused before a session starts
+    # the lobby's own bucket, refilled slowly: a loaded machine's slow requests must not refill it mid-flood
+    lobby_.bucket = Bucket(rate=0.01, burst=JOIN_BURST)
     statuses = [join(port, {"name": f"op{i}"})[0] for i in range(int(JOIN_BURST) + 30)]
     assert statuses.count(429) >= 20 and set(statuses) == {429, 503}
     status, answer = join(port, {"name": "ana"})

@@ -41,6 +41,8 @@ DEFAULT_MAX_STEP_DEG = 5.0  # degrees per tick
 SPEC_KEYS = ("id", "calibration", "max_step")
 TRACKING_GAP_DEG = 3.0  # tracking: nothing held back by the step limit, every arm joint this close (or max_step)
 RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
+STALL_S = 0.5  # failed sends for this long, none answered, and the follower is "disconnected"; a busy host or
+# USB adapter drops a reply now and then (counted in `errors`), which is not a pulled cable
 PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
 PING_PATIENCE_S = 1.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
 # host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
@@ -344,6 +346,7 @@ class Follower:
         period = 1.0 / self.rate_hz
         due = time.perf_counter()
         retry_at = 0.0
+        failing_since: float | None = None  # when the sends began to fail (perf_counter), None while they succeed
         while not self._stop.is_set():
             due += period
             now = time.perf_counter()
@@ -356,13 +359,17 @@ class Follower:
             else:
                 try:
                     self.send_once()
+                    failing_since = None
                 except Exception as exc:  # noqa: BLE001 - a follower that stops answering is shown, then retried
                     self.errors += 1
                     self.error = first_line(exc) or type(exc).__name__
-                    self.state = "disconnected"
-                    retry_at = time.perf_counter() + RECONNECT_S
-                    if self._session is not None:
-                        self._session.stats.note(f"follower {self.spec.port} stopped answering: {self.error}")
+                    failing_since = now if failing_since is None else failing_since
+                    if time.perf_counter() - failing_since >= STALL_S:
+                        self.state = "disconnected"
+                        failing_since = None
+                        retry_at = time.perf_counter() + RECONNECT_S
+                        if self._session is not None:
+                            self._session.stats.note(f"follower {self.spec.port} stopped answering: {self.error}")
             self._stop.wait(max(0.0, due - time.perf_counter()))
 
     def send_once(self) -> None:
