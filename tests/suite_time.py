@@ -10,6 +10,11 @@ times (epoch seconds, one machine's clock for every worker):
   first (`order_unit_first`), so this is how long a person waits for them, in a whole run as in `-m unit`.
 - browser, e2e: from their first test's start to their last one's end (they share the workers with each other).
 
+Wall seconds grow when the workers outnumber the cores; CPU seconds do not. Each report also carries the CPU
+seconds its phase used (user + system, of the worker and of the processes it started and reaped: servers,
+Chromium, `teleop` commands), so the run ends with each marker's CPU seconds and the tests that used the most:
+on 2 cores, the whole run cannot take less wall time than half its CPU seconds.
+
 With TELEOP_UNIT_BUDGET=S set, a run of the whole unit suite (no -k, no paths; `-m unit` or no -m) fails when
 the unit wall time is over S seconds: the quick suite getting slow is a failure, not a surprise. With
 TELEOP_SUITE_WARN=S set, a run whose wall time passes S seconds ends with a warning (not a failure).
@@ -22,6 +27,7 @@ serial run, adds up and reports.
 from __future__ import annotations
 
 import os
+import resource
 import time
 
 import pytest
@@ -30,6 +36,14 @@ BUDGET_ENV = "TELEOP_UNIT_BUDGET"
 WARN_ENV = "TELEOP_SUITE_WARN"
 MARKERS = ("unit", "browser", "e2e")
 PROPERTY = "teleop_marker"  # the user property naming a test's marker, carried by its reports
+CPU_PROPERTY = "teleop_cpu_s"  # the user property with the CPU seconds of a report's phase
+TOP_CPU = 15  # the tests listed by CPU seconds at the end
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its reaped children (and theirs), so far."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def seconds_from_env(name: str) -> float | None:
@@ -63,12 +77,14 @@ class MarkerTime:
     def __init__(self) -> None:
         self.tests: set[str] = set()
         self.seconds = 0.0
+        self.cpu_s = 0.0
         self.first_start = float("inf")
         self.last_stop = 0.0
 
     def add(self, report: pytest.TestReport) -> None:
         self.tests.add(report.nodeid)
         self.seconds += report.duration
+        self.cpu_s += float(dict(report.user_properties).get(CPU_PROPERTY, 0.0))
         self.first_start = min(self.first_start, report.start)
         self.last_stop = max(self.last_stop, report.stop)
 
@@ -83,6 +99,8 @@ class SuiteClock:
         self.wall_s = 0.0
         self.times = {m: MarkerTime() for m in MARKERS}
         self.marker_by_nodeid: dict[str, str] = {}
+        self.cpu_by_test: dict[str, float] = {}
+        self.phase_cpu0 = 0.0  # cpu_seconds() when the running phase began (in the process running the tests)
         self.over_budget = ""
         self.over_warn = ""
         self.budget_s = seconds_from_env(BUDGET_ENV)
@@ -114,9 +132,28 @@ class SuiteClock:
     def pytest_collection_finish(self, session: pytest.Session) -> None:
         self.marker_by_nodeid = {item.nodeid: marker_of(item) for item in session.items}
 
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_runtest_setup(self, item: pytest.Item) -> None:
+        self.phase_cpu0 = cpu_seconds()
+
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_runtest_call(self, item: pytest.Item) -> None:
+        self.phase_cpu0 = cpu_seconds()
+
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_runtest_teardown(self, item: pytest.Item) -> None:
+        self.phase_cpu0 = cpu_seconds()
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_makereport(self, item: pytest.Item, call: pytest.CallInfo):
+        report = (yield).get_result()
+        report.user_properties = [*report.user_properties, (CPU_PROPERTY, round(cpu_seconds() - self.phase_cpu0, 3))]
+
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         if self.is_worker:
             return
+        cpu = float(dict(report.user_properties).get(CPU_PROPERTY, 0.0))
+        self.cpu_by_test[report.nodeid] = self.cpu_by_test.get(report.nodeid, 0.0) + cpu
         marker = dict(report.user_properties).get(PROPERTY) or self.marker_by_nodeid.get(report.nodeid)
         if marker in self.times:
             self.times[marker].add(report)
@@ -148,8 +185,14 @@ class SuiteClock:
                 span = f"{self.unit_wall_s():.1f} s wall from the session's start"
             else:
                 span = f"{t.last_stop - t.first_start:.1f} s wall, ending {t.last_stop - self.started:.1f} s into the run"
-            write(f"{marker}: {len(t.tests)} tests, {t.seconds:.1f} s summed, {span}")
-        write(f"whole run: {self.wall_s:.1f} s wall ({f'{workers} workers' if workers else 'one process'})")
+            write(f"{marker}: {len(t.tests)} tests, {t.seconds:.1f} s summed, {span}, {t.cpu_s:.1f} CPU s")
+        write(f"whole run: {self.wall_s:.1f} s wall ({f'{workers} workers' if workers else 'one process'}), "
+              f"{sum(t.cpu_s for t in self.times.values()):.1f} CPU s")
+        top = sorted(self.cpu_by_test.items(), key=lambda kv: -kv[1])[:TOP_CPU]
+        if top:
+            write("most CPU seconds (setup, call and teardown):")
+            for nodeid, cpu in top:
+                write(f"  {cpu:7.1f} CPU s  {nodeid}")
         if self.times["unit"].tests and self.whole_unit_suite():
             write(f"unit suite: {len(self.times['unit'].tests)} tests in {self.unit_wall_s():.1f} s (wall, collection "
                   f"included; under 120 s on the project's 2-core machine)")

@@ -33,7 +33,9 @@ def pytest_collection_modifyitems(config, items):
 def pytest_configure(config):
     config.pluginmanager.register(SuiteClock(config), "teleop-suite-clock")
 """
-TESTS = "def test_slow():\n    assert 3\n\n\ndef test_one():\n    assert 1\n\n\ndef test_two():\n    assert 2\n"
+TESTS = ("import subprocess, sys\n\n\ndef test_slow():  # half a second of CPU in a child process\n"
+         "    assert subprocess.run([sys.executable, '-c', 'sum(range(20_000_000))']).returncode == 0\n\n\n"
+         "def test_one():\n    assert 1\n\n\ndef test_two():\n    assert 2\n")
 INI = "[pytest]\ntestpaths = suite\nmarkers =\n    unit: quick\n    browser: chromium\n    e2e: slow\n"
 
 
@@ -60,6 +62,18 @@ def marker_line(out: str, marker: str) -> tuple[int, float, float]:
     found = re.search(rf"^{marker}: (\d+) tests, ([\d.]+) s summed, ([\d.]+) s wall", out, re.M)
     assert found, out
     return int(found[1]), float(found[2]), float(found[3])
+
+
+def cpu_of(out: str, marker: str) -> float:
+    """The CPU seconds at the end of the clock's line for `marker`."""
+    found = re.search(rf"^{marker}: .*, ([\d.]+) CPU s$", out, re.M)
+    assert found, out
+    return float(found[1])
+
+
+def most_cpu(out: str) -> list[str]:
+    """The test names under "most CPU seconds", in order."""
+    return re.findall(r"^  +[\d.]+ CPU s  \S+::(\w+)$", out.split("most CPU seconds", 1)[-1], re.M)
 
 
 def whole_wall(out: str) -> float:
@@ -89,6 +103,8 @@ def test_within_budget_it_passes_a_whole_run_times_each_marker_and_a_narrowed_on
     assert order == ["test_one", "test_two", "test_slow"], whole.stdout  # unit tests first, though defined after
     (units, unit_sum, unit_wall), (e2es, _, e2e_wall) = marker_line(whole.stdout, "unit"), marker_line(whole.stdout, "e2e")
     assert (units, e2es) == (2, 1) and unit_sum <= unit_wall <= whole_wall(whole.stdout) and e2e_wall <= whole_wall(whole.stdout)
+    # the child's CPU seconds are the e2e test's; the unit tests used next to none
+    assert cpu_of(whole.stdout, "e2e") >= 0.2 > cpu_of(whole.stdout, "unit") and most_cpu(whole.stdout)[0] == "test_slow"
     narrowed = pytest_run(tiny, "-m", "unit", "-k", "one", budget="0")  # not the whole suite: no figure, no budget
     assert narrowed.returncode == 0, narrowed.stdout + narrowed.stderr
     assert marker_line(narrowed.stdout, "unit")[0] == 1 and "unit suite:" not in narrowed.stdout
@@ -100,6 +116,7 @@ def test_on_xdist_workers_the_controller_times_each_marker_fails_over_budget_and
     assert over.returncode == 1, over.stdout + over.stderr
     assert "3 passed" in over.stdout and "whole run: " in over.stdout and "(2 workers)" in over.stdout
     assert marker_line(over.stdout, "unit")[0] == 2 and marker_line(over.stdout, "e2e")[0] == 1  # the workers' reports, counted
+    assert cpu_of(over.stdout, "e2e") >= 0.2 and most_cpu(over.stdout)[0] == "test_slow"  # CPU seconds, carried over too
     assert "over TELEOP_UNIT_BUDGET=0 s" in over.stdout and "WARNING: the run took" in over.stdout
     warned = pytest_run(tiny, "-n", "2", warn="0")  # the whole run's figure only warns
     assert warned.returncode == 0, warned.stdout + warned.stderr
