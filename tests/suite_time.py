@@ -13,7 +13,9 @@ times (epoch seconds, one machine's clock for every worker):
 Wall seconds grow when the workers outnumber the cores; CPU seconds do not. Each report also carries the CPU
 seconds its phase used (user + system, of the worker and of the processes it started and reaped: servers,
 Chromium, `teleop` commands), so the run ends with each marker's CPU seconds and the tests that used the most:
-on 2 cores, the whole run cannot take less wall time than half its CPU seconds.
+on 2 cores, the whole run cannot take less wall time than half its CPU seconds. Processes no test reaps (Ray's
+daemons, Chromium's GPU process) escape that count, so the run also says how busy the machine's CPUs were over
+its wall time (/proc/stat): near 100 %, only less work makes the run shorter, not more workers.
 
 With TELEOP_UNIT_BUDGET=S set, a run of the whole unit suite (no -k, no paths; `-m unit` or no -m) fails when
 the unit wall time is over S seconds: the quick suite getting slow is a failure, not a surprise. With
@@ -38,6 +40,21 @@ MARKERS = ("unit", "browser", "e2e")
 PROPERTY = "teleop_marker"  # the user property naming a test's marker, carried by its reports
 CPU_PROPERTY = "teleop_cpu_s"  # the user property with the CPU seconds of a report's phase
 TOP_CPU = 15  # the tests listed by CPU seconds at the end
+
+
+def machine_cpu() -> tuple[float, float] | None:
+    """(busy, total) CPU seconds of the whole machine since boot, all cores, from /proc/stat (None elsewhere)."""
+    try:
+        with open("/proc/stat") as stat:
+            fields = [float(v) for v in stat.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 5:
+        return None
+    ticks = os.sysconf("SC_CLK_TCK")
+    idle = fields[3] + fields[4]  # idle + iowait
+    total = sum(fields[:8])  # user nice system idle iowait irq softirq steal (guest time is inside user)
+    return (total - idle) / ticks, total / ticks
 
 
 def cpu_seconds() -> float:
@@ -96,6 +113,8 @@ class SuiteClock:
         self.config = config
         self.is_worker = hasattr(config, "workerinput")  # an xdist worker: it orders and tags, the controller counts
         self.started = time.time()
+        self.machine_at_start = machine_cpu()
+        self.machine_busy = ""  # "92 % (3,170 of 3,445 core-seconds)": how busy the CPUs were over the run
         self.wall_s = 0.0
         self.times = {m: MarkerTime() for m in MARKERS}
         self.marker_by_nodeid: dict[str, str] = {}
@@ -120,6 +139,7 @@ class SuiteClock:
     @pytest.hookimpl(tryfirst=True)
     def pytest_sessionstart(self, session: pytest.Session) -> None:
         self.started = time.time()
+        self.machine_at_start = machine_cpu()
 
     @pytest.hookimpl(trylast=True)
     def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
@@ -162,6 +182,10 @@ class SuiteClock:
         if self.is_worker:
             return
         self.wall_s = time.time() - self.started
+        end = machine_cpu()
+        if end is not None and self.machine_at_start is not None and end[1] > self.machine_at_start[1]:
+            busy, total = end[0] - self.machine_at_start[0], end[1] - self.machine_at_start[1]
+            self.machine_busy = f"{100 * busy / total:.0f} % ({busy:,.0f} of {total:,.0f} core-seconds)"
         unit_wall = self.unit_wall_s()
         if self.budget_s is not None and self.times["unit"].tests and self.whole_unit_suite() and unit_wall > self.budget_s:
             self.over_budget = f"the unit tests took {unit_wall:.0f} s of wall time, over {BUDGET_ENV}={self.budget_s:g} s"
@@ -188,6 +212,8 @@ class SuiteClock:
             write(f"{marker}: {len(t.tests)} tests, {t.seconds:.1f} s summed, {span}, {t.cpu_s:.1f} CPU s")
         write(f"whole run: {self.wall_s:.1f} s wall ({f'{workers} workers' if workers else 'one process'}), "
               f"{sum(t.cpu_s for t in self.times.values()):.1f} CPU s")
+        if self.machine_busy:
+            write(f"the machine's CPUs were busy {self.machine_busy} over the run, by any process")
         top = sorted(self.cpu_by_test.items(), key=lambda kv: -kv[1])[:TOP_CPU]
         if top:
             write("most CPU seconds (setup, call and teardown):")

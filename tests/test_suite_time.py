@@ -117,6 +117,10 @@ def test_on_xdist_workers_the_controller_times_each_marker_fails_over_budget_and
     assert "3 passed" in over.stdout and "whole run: " in over.stdout and "(2 workers)" in over.stdout
     assert marker_line(over.stdout, "unit")[0] == 2 and marker_line(over.stdout, "e2e")[0] == 1  # the workers' reports, counted
     assert cpu_of(over.stdout, "e2e") >= 0.2 and most_cpu(over.stdout)[0] == "test_slow"  # CPU seconds, carried over too
+    busy = re.search(r"^the machine's CPUs were busy (\d+) % \(([\d,]+) of ([\d,]+) core-seconds\)", over.stdout, re.M)
+    assert busy and 0 <= int(busy[1]) <= 100, over.stdout
+    cores_s = float(busy[3].replace(",", ""))  # every core's seconds over the run: about wall x cores
+    assert 0.5 * whole_wall(over.stdout) * os.cpu_count() <= cores_s <= 1.5 * whole_wall(over.stdout) * os.cpu_count() + 2
     assert "over TELEOP_UNIT_BUDGET=0 s" in over.stdout and "WARNING: the run took" in over.stdout
     warned = pytest_run(tiny, "-n", "2", warn="0")  # the whole run's figure only warns
     assert warned.returncode == 0, warned.stdout + warned.stderr
