@@ -206,7 +206,8 @@ def test_two_pages_see_the_same_session(page, server, browser):
         headless.click_until(page, "Open", lambda: server.status(missing_ok=True).get("gripper_open") == [True],
                              what="the first page's click")
         status = server.status()
-        assert status["loop_hz"] > 0.8 * status["control_hz"]
+        # the loop kept going with two pages attached (how close to real time it keeps: bench/web.py)
+        assert status["loop_hz"] > 0 and 0 < status["realtime_factor"] < 1.15  # paced, never ahead of the clock
     finally:
         second.close()
 
