@@ -4,6 +4,9 @@
 # (bit-exact), and `teleop serve` answering / and /phone with HTTP 200.
 #   .ci/wheel_check.sh [PYTHON]   (default: the test venv's python, for its pip cache and interpreter)
 set -euo pipefail
+# Only the fresh venv counts: a caller's PYTHONPATH naming a checkout (a test run pointed at its clone) would let
+# pip take the package as installed already and the checks import the checkout's code
+unset PYTHONPATH PYTHONHOME
 root=$(cd "$(dirname "$0")/.." && pwd)
 python=${1:-$root/.venv/bin/python}
 work=$(mktemp -d)

@@ -30,7 +30,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from recorder.disk import write_failure_in
+import numpy as np
+
+from recorder.disk import write_failure_in, write_text_whole
 from replay.errors import first_line
 from replay.export.choose import export_units, select_episodes, wants_intervention, wants_variation_meta
 from replay.export.codecs import video_decoder
@@ -310,9 +312,41 @@ def _merge(opts: ExportOptions, shards: list[_Shard]) -> None:
         try:
             aggregate_datasets([opts.repo_id] * len(shards), opts.repo_id, roots=[s.out for s in shards],
                                aggr_root=opts.out)
+            _restate_indices(opts.out)
         except Exception as exc:  # noqa: BLE001 - LeRobot raises ValueError, OSError, av errors...
             shutil.rmtree(opts.out, ignore_errors=True)
             raise ExportError(f"merging the exported shards failed: {first_line(exc)}") from None
+
+
+INDEX_COLUMNS = ("index", "episode_index", "task_index")  # renumbered by the merge; frame_index is not
+
+
+def _restate_indices(root: Path) -> None:
+    """The merged dataset's statistics of the columns the merge renumbers, from their merged values.
+
+    LeRobot's aggregate_datasets renumbers `index`, `episode_index` and `task_index` in the data but aggregates
+    each shard's statistics of them as the shard wrote them (each shard counts from 0: a dataset of 7 episodes
+    said episode_index max 3). Recomputed here per episode and aggregated, with LeRobot's functions, as a
+    serial export computes them.
+    """
+    import pyarrow.parquet as pq
+    from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
+    from lerobot.datasets.io_utils import load_stats
+    from lerobot.datasets.utils import STATS_PATH, serialize_dict
+
+    stats = load_stats(root)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    columns = [c for c in INDEX_COLUMNS if c in info["features"] and stats is not None and c in stats]
+    if not columns:
+        return
+    table = pq.read_table(sorted((root / "data").rglob("*.parquet")), columns=columns)
+    values = {c: table.column(c).to_numpy() for c in columns}
+    features = {c: info["features"][c] for c in columns}
+    episodes = values["episode_index"] if "episode_index" in values else np.zeros(len(table), dtype=int)
+    per_episode = [compute_episode_stats({c: v[episodes == e] for c, v in values.items()}, features)
+                   for e in np.unique(episodes)]
+    stats.update(aggregate_stats(per_episode))
+    write_text_whole(root / STATS_PATH, json.dumps(serialize_dict(stats), indent=4))  # whole, or the old one
 
 
 # -- running the shards --------------------------------------------------------
