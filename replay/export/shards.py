@@ -340,11 +340,13 @@ def _restate_indices(root: Path) -> None:
     if not columns:
         return
     table = pq.read_table(sorted((root / "data").rglob("*.parquet")), columns=columns)
-    values = {c: table.column(c).to_numpy() for c in columns}
+    episodes = table.column("episode_index").to_numpy() if "episode_index" in columns else np.zeros(len(table), int)
+    order = np.argsort(episodes, kind="stable")  # the rows of each episode together, in their order
+    values = {c: table.column(c).to_numpy()[order] for c in columns}
+    _, starts = np.unique(episodes[order], return_index=True)
+    ends = [*starts[1:], len(order)]
     features = {c: info["features"][c] for c in columns}
-    episodes = values["episode_index"] if "episode_index" in values else np.zeros(len(table), dtype=int)
-    per_episode = [compute_episode_stats({c: v[episodes == e] for c, v in values.items()}, features)
-                   for e in np.unique(episodes)]
+    per_episode = [compute_episode_stats({c: v[a:b] for c, v in values.items()}, features) for a, b in zip(starts, ends)]
     stats.update(aggregate_stats(per_episode))
     write_text_whole(root / STATS_PATH, json.dumps(serialize_dict(stats), indent=4))  # whole, or the old one
 
