@@ -98,10 +98,10 @@ class MarkerTime:
         self.first_start = float("inf")
         self.last_stop = 0.0
 
-    def add(self, report: pytest.TestReport) -> None:
+    def add(self, report: pytest.TestReport, cpu_s: float) -> None:
         self.tests.add(report.nodeid)
         self.seconds += report.duration
-        self.cpu_s += float(dict(report.user_properties).get(CPU_PROPERTY, 0.0))
+        self.cpu_s += cpu_s
         self.first_start = min(self.first_start, report.start)
         self.last_stop = max(self.last_stop, report.stop)
 
@@ -153,16 +153,11 @@ class SuiteClock:
         self.marker_by_nodeid = {item.nodeid: marker_of(item) for item in session.items}
 
     @pytest.hookimpl(tryfirst=True)
-    def pytest_runtest_setup(self, item: pytest.Item) -> None:
+    def _phase_starts(self, item: pytest.Item) -> None:
+        """Before a test's setup, call or teardown runs: the CPU seconds its report will count from."""
         self.phase_cpu0 = cpu_seconds()
 
-    @pytest.hookimpl(tryfirst=True)
-    def pytest_runtest_call(self, item: pytest.Item) -> None:
-        self.phase_cpu0 = cpu_seconds()
-
-    @pytest.hookimpl(tryfirst=True)
-    def pytest_runtest_teardown(self, item: pytest.Item) -> None:
-        self.phase_cpu0 = cpu_seconds()
+    pytest_runtest_setup = pytest_runtest_call = pytest_runtest_teardown = _phase_starts
 
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_makereport(self, item: pytest.Item, call: pytest.CallInfo):
@@ -172,11 +167,12 @@ class SuiteClock:
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         if self.is_worker:
             return
-        cpu = float(dict(report.user_properties).get(CPU_PROPERTY, 0.0))
+        properties = dict(report.user_properties)
+        cpu = float(properties.get(CPU_PROPERTY, 0.0))
         self.cpu_by_test[report.nodeid] = self.cpu_by_test.get(report.nodeid, 0.0) + cpu
-        marker = dict(report.user_properties).get(PROPERTY) or self.marker_by_nodeid.get(report.nodeid)
+        marker = properties.get(PROPERTY) or self.marker_by_nodeid.get(report.nodeid)
         if marker in self.times:
-            self.times[marker].add(report)
+            self.times[marker].add(report, cpu)
 
     def pytest_sessionfinish(self, session: pytest.Session) -> None:
         if self.is_worker:

@@ -336,11 +336,11 @@ def _restate_indices(root: Path) -> None:
 
     stats = load_stats(root)
     info = json.loads((root / "meta" / "info.json").read_text())
-    columns = [c for c in INDEX_COLUMNS if c in info["features"] and stats is not None and c in stats]
-    if not columns:
+    columns = [c for c in INDEX_COLUMNS if c in info["features"] and c in (stats or {})]
+    if "episode_index" not in columns:  # LeRobot's datasets always have it: nothing of ours to restate
         return
     table = pq.read_table(sorted((root / "data").rglob("*.parquet")), columns=columns)
-    episodes = table.column("episode_index").to_numpy() if "episode_index" in columns else np.zeros(len(table), int)
+    episodes = table.column("episode_index").to_numpy()
     order = np.argsort(episodes, kind="stable")  # the rows of each episode together, in their order
     values = {c: table.column(c).to_numpy()[order] for c in columns}
     _, starts = np.unique(episodes[order], return_index=True)
