@@ -18,9 +18,9 @@ Engaging without a jump (GELLO's rule): at the start of an episode, and when the
 back after an unplug, an arm more than 0.5 rad (a joint) or 5 cm / 0.5 rad (the EE) from where
 the leader says eases toward it, at most 0.05 rad or 1 cm (and 0.05 rad of turn) a control
 tick; status() says "easing in" until it has caught up. A reader thread of its own polls the bus
-(`get_action()`), so a slow or unplugged bus never stalls the control tick; unplugged, the device
-says "disconnected", sends nothing (the arm holds its last target) and tries to reopen the port
-every second. Retargeting keeps the episode's origin across an unplug, so a leader moved while
+(`get_action()`), so a slow or unplugged bus never stalls the control tick; unplugged (its reads
+failing for half a second), the device says "disconnected", sends nothing (the arm holds its last
+target) and tries to reopen the port every second. Retargeting keeps the episode's origin across an unplug, so a leader moved while
 unplugged brings the arm to where it says, eased in, rather than shifting the origin.
 """
 
@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
@@ -51,7 +52,7 @@ EASE_POS_M = 0.01  # per control tick
 EASE_TURN_RAD = 0.05  # per control tick
 READ_PERIOD_S = 0.005  # the reader thread's pause between bus reads (a sync read takes about 0.5-3 ms)
 RECONNECT_S = 1.0  # between tries to reopen an unplugged leader
-LOST_AFTER_FAILURES = 2  # failed reads in a row (LeRobot retries each twice) that mean the leader is gone, not a glitch
+LOST_AFTER_S = 0.5  # reads failing for this long (each of them since) mean the leader is gone, not a glitch
 
 def _stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
@@ -162,7 +163,7 @@ class LeaderArm:
 
     # -- reading thread ---------------------------------------------------
     def _run(self) -> None:
-        failures = 0  # failed reads in a row
+        failing_since: float | None = None  # when the reads in a row that failed began
         while not self._stop.is_set():
             leader = self._leader
             if leader is None:
@@ -173,12 +174,16 @@ class LeaderArm:
             try:
                 sample = _reading(leader.get_action())
             except Exception as exc:  # noqa: BLE001 - unplugged: pyserial, LeRobot and the OS raise many kinds
-                failures += 1
-                if failures >= LOST_AFTER_FAILURES:
-                    failures = 0
+                # one lost answer (a busy host or USB adapter) is a glitch: the arm holds its target a tick or two
+                now = time.monotonic()
+                failing_since = now if failing_since is None else failing_since
+                if now - failing_since >= LOST_AFTER_S:
+                    failing_since = None
                     self._lost(first_words(exc))
+                else:
+                    self._stop.wait(READ_PERIOD_S)
                 continue
-            failures = 0
+            failing_since = None
             with self._lock:
                 self._sample = sample
                 self.readings += 1

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 from devices.base import Device, DeviceError
 from devices.leader_connect import LeaderError
-from devices.lerobot_leader import make_leader  # LeRobot itself is imported only when a leader starts
 
 
 @dataclass
@@ -42,6 +41,8 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
     name, _, arg = spec.partition(":")
     name = name.strip().lower()
     if name in LEADER_DEVICES:
+        from devices.lerobot_leader import make_leader  # its kinematics need MuJoCo; LeRobot loads when it starts
+
         return make_leader(name, arg, options.n_arms)  # case-preserving options, PORT may hold ':'
     if name == "script":
         from devices.script import ScriptDevice

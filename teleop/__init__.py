@@ -17,26 +17,69 @@ from the robot's base, z up) with wxyz quaternions, as MuJoCo writes them.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from devices.base import Device, DeviceError
-from devices.command import Command
-from devices.gizmo import GizmoDevice
-from devices.keyboard import KeyboardDevice
-from devices.script import ScriptDevice
-from devices.spacemouse import SpaceMouseDevice
-from replay.episode import EpisodeMeta
-from replay import Episode, VerifyResult, load_episode, replay_states, resimulate
-from replay.export import ExportOptions, ExportSummary
-from replay.export import export_dataset
-from scenes.errors import TeleopError
-from teleop.control.controller import Controller, StepResult
-from teleop.control.loop import EpisodeResult, run_episode
-from teleop.control.recording import Recorder
-from teleop.control.session import Session
-from teleop.web.session_page.serve_options import ServeOptions
+if TYPE_CHECKING:
+    from devices.base import Device, DeviceError
+    from devices.command import Command
+    from devices.gizmo import GizmoDevice
+    from devices.keyboard import KeyboardDevice
+    from devices.script import ScriptDevice
+    from devices.spacemouse import SpaceMouseDevice
+    from replay import Episode, VerifyResult, load_episode, replay_states, resimulate
+    from replay.episode import EpisodeMeta
+    from replay.export import ExportOptions, ExportSummary
+    from scenes.errors import TeleopError
+    from teleop.control.controller import Controller, StepResult
+    from teleop.control.loop import EpisodeResult, run_episode
+    from teleop.control.recording import Recorder
+    from teleop.control.session import Session
+    from teleop.web.session_page.serve_options import ServeOptions
+
+# Each name's module, imported at the first use of the name (PEP 562): `teleop --help` and a command that stops
+# at a bad flag need none of MuJoCo, mink or LeRobot, and start in a fraction of a second.
+_HOMES = {
+    "Command": "devices.command",
+    "Controller": "teleop.control.controller",
+    "Device": "devices.base",
+    "DeviceError": "devices.base",
+    "Episode": "replay",
+    "EpisodeMeta": "replay.episode",
+    "EpisodeResult": "teleop.control.loop",
+    "ExportOptions": "replay.export",
+    "ExportSummary": "replay.export",
+    "GizmoDevice": "devices.gizmo",
+    "KeyboardDevice": "devices.keyboard",
+    "Recorder": "teleop.control.recording",
+    "ScriptDevice": "devices.script",
+    "ServeOptions": "teleop.web.session_page.serve_options",
+    "Session": "teleop.control.session",
+    "SpaceMouseDevice": "devices.spacemouse",
+    "StepResult": "teleop.control.controller",
+    "TeleopError": "scenes.errors",
+    "VerifyResult": "replay",
+    "load_episode": "replay",
+    "replay_states": "replay",
+    "resimulate": "replay",
+    "run_episode": "teleop.control.loop",
+}
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'teleop' has no attribute {name!r}")
+    value = getattr(importlib.import_module(home), name)
+    globals()[name] = value  # the next use is a plain attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "Command",
@@ -86,6 +129,8 @@ def export_lerobot(
     `append`. The progress bar is off unless `progress=True`. A keyword that is no field
     raises TypeError naming it. Needs the `lerobot` extra.
     """
+    from replay.export import ExportOptions, export_dataset
+
     known = {f.name for f in dataclasses.fields(ExportOptions)}
     if unknown := sorted(set(fields) - known):
         raise TypeError(f"export_lerobot() got unexpected keyword argument(s) {', '.join(unknown)} "
@@ -121,6 +166,7 @@ def serve(session: Session, options: ServeOptions | None = None, **keywords: Any
     loads on the first call, so `import teleop` stays quick for everything that does not serve.
     """
     from teleop.web.session_page.serve import serve as serve_session  # lazy: heavy, and only a browser session needs it
+    from teleop.web.session_page.serve_options import ServeOptions
 
     fields = {name: keywords.pop(name) for name in [f.name for f in dataclasses.fields(ServeOptions)] if name in keywords}
     if options is None:

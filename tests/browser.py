@@ -164,8 +164,8 @@ def click_button(page, label: str, timeout_s: float = 60.0) -> None:
 
 
 def click_until(page, label: str, done, timeout_s: float = 120.0, what: str = "the click's effect",
-                again_s: float = 20.0) -> None:
-    """Click the panel button `label` until `done()` is true; fails naming `what` after `timeout_s`.
+                again_s: float = 20.0, show=None) -> None:
+    """Click the panel button `label` until `done()` is true; fails naming `what` (and `show()`) after `timeout_s`.
 
     For a button whose click may be repeated (Close, Open: a second click asks for what the first did). A click
     made while a loaded page was still catching up with its server (or reconnecting) can be lost; the page is
@@ -180,7 +180,8 @@ def click_until(page, label: str, done, timeout_s: float = 120.0, what: str = "t
                 return
             time.sleep(0.1)
         if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout_s:.0f} s clicking {label!r}, waiting for {what}")
+            seen = f"; {show()}" if show is not None else ""
+            raise AssertionError(f"timed out after {timeout_s:.0f} s clicking {label!r}, waiting for {what}{seen}")
 
 
 def pick(page, label: str, option: str, timeout_s: float = 60.0) -> None:

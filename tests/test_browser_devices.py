@@ -113,17 +113,17 @@ def test_webhid_reports_go_through_the_spacemouse_parser(layout):
         reports = list(encode_separate(350, 0, 0, 0, 0, 0)) if layout == "separate" else [encode_combined(350, 0, 0, 0, 0, 0)]
         for report in reports:
             assert handle.push(report[0], report[1:])
-        assert wait_until(lambda: device.reports == len(reports), 3.0)
+        assert wait_until(lambda: device.reports == len(reports), 30.0)
         assert device.status() == "SpaceMouse Compact in a browser"
         (cmd,) = device.poll(None, DT)
         assert np.linalg.norm(cmd.translation) == pytest.approx(0.2 * DT, rel=0.02)  # full deflection, one axis
         button = encode_buttons(1)
         handle.push(button[0], button[1:])  # left button: the gripper
-        assert wait_until(lambda: device.reports == len(reports) + 1, 3.0)
+        assert wait_until(lambda: device.reports == len(reports) + 1, 30.0)
         assert [c.gripper for c in device.poll(None, DT)] == ["toggle"]
         assert not handle.push(1, bytes(70))  # too long for a SpaceMouse report: dropped
         device.source.disconnect(handle)  # the browser went away: motion stops at once
-        assert wait_until(lambda: not device._connected, 3.0)
+        assert wait_until(lambda: not device._connected, 30.0)
         assert device.poll(None, DT) == []
         assert "waiting" in device.status()
     finally:
@@ -143,7 +143,7 @@ def test_webhid_reader_waits_for_a_browser_without_polling_and_wakes_when_one_co
         handle = device.source.connect("SpaceMouse Compact")
         report = encode_combined(350, 0, 0, 0, 0, 0)
         handle.push(report[0], report[1:])
-        assert wait_until(lambda: device.reports == 1, 3.0)
+        assert wait_until(lambda: device.reports == 1, 30.0)
         assert time.monotonic() - started < 0.5, "connecting a device did not wake the reader"
     finally:
         closing = time.monotonic()
@@ -265,12 +265,12 @@ def test_a_page_that_goes_away_lets_go_of_its_pad_phone_and_spacemouse():
         inputs.received(1, HidConnect("SpaceMouse Compact"))
         report = encode_combined(0, -350, 0, 0, 0, 0)
         inputs.received(1, Hid(report[0], report[1:]))
-        assert wait_until(lambda: mouse.reports == 1, 3.0)
+        assert wait_until(lambda: mouse.reports == 1, 30.0)
         assert pad.poll(None, DT) and "held" in phone.status() and mouse.poll(None, DT)
         inputs.received(2, Gamepad("other", (), (), True))  # another page's pad now: page 1 no longer owns it
         inputs.closed(1)
         assert pad.poll(None, DT) == [] and "no phone" in phone.status()
-        assert wait_until(lambda: not mouse._connected, 3.0) and mouse.poll(None, DT) == []
+        assert wait_until(lambda: not mouse._connected, 30.0) and mouse.poll(None, DT) == []
         inputs.received(3, Hid(1, b"\x00" * 12))  # reports before a hid_connect: not used
         assert inputs.unused == 1
     finally:

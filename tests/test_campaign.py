@@ -127,7 +127,7 @@ def test_two_operators_record_apart_and_faults_stay_in_their_session(tmp_path):
         subprocess.run(["kill", "-9", str(ana_pid)], check=True)
         wait_until(lambda: campaign.session(ana["session"])["state"] == "ended", 30, "ana's session shown ended")
         steps = campaign_session_status(out, bo["session"])["episode_steps"]
-        wait_until(lambda: campaign_session_status(out, bo["session"]).get("episode_steps", 0) > steps + 30, 30, "bo recording on")
+        wait_until(lambda: campaign_session_status(out, bo["session"]).get("episode_steps", 0) > steps + 30, 60, "bo recording on")
         assert campaign.session(bo["session"])["state"] == "live"
         cut = [e for e in map(readable, find_episodes([out / "lift"])) if e is not None and e.meta.operator == "ana"]
         assert len(cut) == 2 and max(e.steps for e in cut) > 0  # the killed episode reads as today (cut short)

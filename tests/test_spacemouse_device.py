@@ -68,7 +68,7 @@ class Port:
         return self.handles[-1]
 
 
-def wait_for(predicate, timeout=2.0):
+def wait_for(predicate, timeout=30.0):  # generous: a loaded machine stalls threads, and a pass returns at once
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if predicate():

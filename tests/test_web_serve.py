@@ -191,12 +191,18 @@ def test_two_pages_see_the_same_session(page, server, browser):
         before = [headless.frames_received(p) for p in (page, second)]
         updates = server.status()["web_updates"]
 
-        def closed() -> bool:
+        def closed() -> bool:  # closed, and drawn (a loaded machine may draw the whole close in one or two updates)
             status = server.status(missing_ok=True)
-            return status.get("gripper_open") == [False] and status.get("web_updates", 0) > updates + 5
+            return status.get("gripper_open") == [False] and status.get("web_updates", 0) > updates
+
+        def seen() -> str:
+            status = server.status(missing_ok=True)
+            keys = ("gripper_open", "web_updates", "clients", "tick", "loop_hz", "slips", "input_dropped", "notes")
+            return f"web_updates before {updates}, now {({k: status.get(k) for k in keys})}; page messages {before} -> " \
+                   f"{[headless.frames_received(p) for p in (page, second)]}"
 
         # the second page drives the same robot...
-        headless.click_until(second, "Close", closed, what="the fingers to move")
+        headless.click_until(second, "Close", closed, what="the fingers to move", show=seen)
 
         def gained() -> list[int]:
             return [headless.frames_received(p) - b for p, b in zip((page, second), before)]

@@ -8,11 +8,14 @@ enough to judge it again. Boxes are in a body's own frame at the model's initial
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import mujoco
 import numpy as np
 
 from scenes.tasks.expr import Number
+
+if TYPE_CHECKING:  # MuJoCo loads with the first model read, not with a task file's parser
+    import mujoco
 
 UNITS_NUMERIC = "teleop_task_units"
 OBJECTS_TEXT = "teleop_task_objects"  # custom text: the task's object bodies, comma-separated, in file order
@@ -42,6 +45,8 @@ class Units:
 
 def model_units(model: mujoco.MjModel) -> Units | None:
     """The units a task stored in the model, or None (a model from before task files)."""
+    import mujoco
+
     i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, UNITS_NUMERIC)
     if i < 0:
         return None
@@ -52,6 +57,8 @@ def model_units(model: mujoco.MjModel) -> Units | None:
 
 def model_task_bodies(model: mujoco.MjModel) -> list[str] | None:
     """The body of each task object the scene stored in the model (fixed ones too), or None (a model from before)."""
+    import mujoco
+
     i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, OBJECTS_TEXT)
     if i < 0:
         return None
@@ -76,6 +83,8 @@ def colliding_geom(model: mujoco.MjModel, g: int) -> bool:
 
 def body_box(model: mujoco.MjModel, bodies: set[int], frame_body: int, colliding: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) corners (m) of the box around `bodies`' geoms in `frame_body`'s frame at the model's initial pose."""
+    import mujoco
+
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
     rot = data.xmat[frame_body].reshape(3, 3)

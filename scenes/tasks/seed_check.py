@@ -8,21 +8,25 @@ built, so a few hundred seeds take well under a second per robot for most files)
 from __future__ import annotations
 
 from collections import Counter
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scenes.assembly.build import layout_for
-from scenes.assembly.robot import load_robot
-from scenes.tasks.base import Task
-from scenes.tasks.file_task import FileTask
 from scenes.tasks.file_values import TaskFileError
-from scenes.tasks.placement import PlacementError
+
+if TYPE_CHECKING:  # the robots and MuJoCo load when a check runs, not for `teleop --help`'s default
+    from scenes.tasks.base import Task
+    from scenes.tasks.file_task import FileTask
 
 DEFAULT_SEEDS = 200  # `teleop scenes --seeds N`: a clash on 2% of seeds is missed with probability e^-4 ~ 2%
 
 
 def placement_clashes(task: FileTask, robot: str, seeds: int) -> tuple[Counter, dict[tuple[str, str], int]]:
     """(seeds that failed per (object, the one it clashed with), the first such seed) at `robot`'s layout."""
+    from scenes.assembly.build import layout_for
+    from scenes.assembly.robot import load_robot
+    from scenes.tasks.placement import PlacementError
+
     layout = layout_for(load_robot(robot))
     geos = task.geometries(layout)
     counts: Counter = Counter()
@@ -38,6 +42,8 @@ def placement_clashes(task: FileTask, robot: str, seeds: int) -> tuple[Counter, 
 
 def check_placement(task: Task, robots: list[str], seeds: int = DEFAULT_SEEDS) -> None:
     """TaskFileError (one line: the objects, the share of seeds, the first seed) if any seed cannot be placed."""
+    from scenes.tasks.file_task import FileTask
+
     if not isinstance(task, FileTask) or seeds < 1:
         return
     for robot in robots:

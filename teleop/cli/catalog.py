@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from scenes import BUILTIN_ROBOTS
-from scenes.tasks.catalog import catalog
 from scenes.tasks.seed_check import DEFAULT_SEEDS
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
@@ -24,6 +22,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_robots(args: argparse.Namespace) -> int:
+    from scenes import BUILTIN_ROBOTS  # here, not above: `teleop --help` needs no robot built
+
     width = max(len(n) for n in BUILTIN_ROBOTS)
     for name, (summary, _) in BUILTIN_ROBOTS.items():
         print(f"{name:<{width}}  {summary}")
@@ -34,6 +34,8 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     """Every task with its instruction, family, objects and the robots it builds with (each robot is built)."""
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
+    from scenes.tasks.catalog import catalog
+
     rows = catalog(list(args.paths) or None, seeds=args.seeds)
     if args.json:
         print_json({"task_count": len(rows), "scenes": rows})

@@ -8,15 +8,11 @@ import time
 
 import numpy as np
 
-from devices.base import Restartable
-from recorder import RecorderError
 from scenes.errors import TeleopError
-from scenes.workers import shielded
 from teleop.errors import UsageError
 from teleop.cli.json_output import print_json
 from teleop.cli.session_args import add_session_args, devices_from, follower_from, session_from
 from teleop.cli.signals import interrupts_ignored
-from teleop.control.loop import run_episode
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +29,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from devices.base import Restartable  # here, not above: `teleop --help` needs none of MuJoCo or mink
+    from recorder import RecorderError
+    from scenes.workers import shielded
+    from teleop.control.loop import run_episode
+
     if args.episodes < 1:
         raise UsageError("--episodes must be at least 1")
     if args.seconds is not None and args.seconds <= 0:

@@ -10,13 +10,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from devices.base import Device
 from teleop.cli.variation_args import add_physics_args, variation_from
-from teleop.control.session import Session
-from teleop.control.session_setup import check_record_dir, open_session, open_session_devices
 
-if TYPE_CHECKING:  # annotations only: LeRobot loads only with --follower
+if TYPE_CHECKING:  # annotations only: MuJoCo and mink load when a session opens, LeRobot only with --follower
+    from devices.base import Device
     from teleop.control.follower import Follower
+    from teleop.control.session import Session
 
 
 def add_session_args(p: argparse.ArgumentParser) -> None:
@@ -39,6 +38,8 @@ def add_session_args(p: argparse.ArgumentParser) -> None:
 
 def session_from(args: argparse.Namespace, verify: str = "sync", on_error: str = "raise") -> Session:
     """The Session of the shared flags, recording into --record when given."""
+    from teleop.control.session_setup import check_record_dir, open_session
+
     check_record_dir(args.record)
     variation = variation_from(args, "generation")  # a bad --vary word or range: one line, before the scene builds
     return open_session(
@@ -64,4 +65,6 @@ def follower_from(args: argparse.Namespace, session: Session) -> "Follower | Non
 def devices_from(args: argparse.Namespace, n_arms: int, serving: bool = False,
                  log: Callable[[str], None] | None = None) -> tuple[list[Device], list[str]]:
     """The devices of --device at --pos-speed / --rot-speed (see open_session_devices)."""
+    from teleop.control.session_setup import open_session_devices
+
     return open_session_devices(args.device, n_arms, args.pos_speed, args.rot_speed, serving=serving, log=log)
