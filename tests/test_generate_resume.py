@@ -71,7 +71,9 @@ def assert_whole_and_exact(directory: Path) -> None:
 def test_kill_9_then_resume_keeps_num_episodes_without_duplicates(sources, tmp_path):
     rng = random.Random()
     out = tmp_path / "gen"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    scratch = tmp_path / "tmp"  # the workers' temporary folder: what a killed worker leaves is seen here
+    scratch.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "TMPDIR": str(scratch)}
     proc = subprocess.Popen([sys.executable, "-m", "teleop", *generate_argv(sources, out, "--num", str(NUM),
                                                                                 "--workers", "2")],
                             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -101,7 +103,11 @@ def test_kill_9_then_resume_keeps_num_episodes_without_duplicates(sources, tmp_p
     before = kept_seeds(out)
     assert before and len(before) < NUM + 1
 
-    resumed = run_json(*generate_argv(sources, out, "--num", str(NUM), "--workers", "2", "--json"))
+    left = sorted(p.name for p in scratch.glob("teleop-generate-*"))  # the killed workers' batch folders
+    resumed = run_json(*generate_argv(sources, out, "--num", str(NUM), "--workers", "2", "--json"),
+                       env={"TMPDIR": str(scratch)})
+    now = sorted(p.name for p in scratch.glob("teleop-generate-*"))
+    assert not now, f"batch folders left after the resume: {now} (after the kill: {left})"
     assert resumed["resumed_from"] == len(before)
     assert set(before) <= set(resumed["seeds_skipped"])
     assert resumed["successes"] == NUM - len(before)

@@ -18,7 +18,6 @@ import math
 import os
 import shutil
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -42,6 +41,7 @@ from scenes.workers import Runner, connect_ray
 from teleop.generate.arms import ArmSegments, ArmsPlanDevice, arm_refs, choose_arm_segments, cut_arms, generated_subtasks
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
 from teleop.generate.resume import Done, Journal, run_identity
+from teleop.generate.scratch import scratch_dir
 from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
@@ -276,8 +276,8 @@ def run_attempt(job: Job, seed: int, index: int, workdir: Path) -> Attempt:
 
 def run_batch(job: Job, seeds: Sequence[tuple[int, int]]) -> list[Attempt]:
     """Attempts for (seed, index) pairs, in order; the unit of work a worker or Ray task takes."""
-    with tempfile.TemporaryDirectory(prefix="teleop-generate-") as tmp:
-        return [run_attempt(job, seed, index, Path(tmp)) for seed, index in seeds]
+    with scratch_dir() as tmp:  # a killed worker's is swept by the next run's first batch
+        return [run_attempt(job, seed, index, tmp) for seed, index in seeds]
 
 
 def _warm_up(job: Job) -> None:
