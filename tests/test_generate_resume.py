@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -103,7 +104,13 @@ def test_kill_9_then_resume_keeps_num_episodes_without_duplicates(sources, tmp_p
     before = kept_seeds(out)
     assert before and len(before) < NUM + 1
 
-    left = sorted(p.name for p in scratch.glob("teleop-generate-*"))  # the killed workers' batch folders
+    # the workers saw the driver die and removed their batch folders; one killed with SIGKILL itself (an OOM
+    # kill, a lost Ray task) cannot: its folder, made here for a process that has ended, goes with the resume
+    left = sorted(p.name for p in scratch.glob("teleop-generate-*"))
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = scratch / f"teleop-generate-{int(ended.stdout)}@{socket.gethostname()}-k1lled00"
+    stale.mkdir()
+    (stale / "episode_000003.mcap.part").write_bytes(b"\0" * 4096)
     resumed = run_json(*generate_argv(sources, out, "--num", str(NUM), "--workers", "2", "--json"),
                        env={"TMPDIR": str(scratch)})
     now = sorted(p.name for p in scratch.glob("teleop-generate-*"))

@@ -41,7 +41,7 @@ from scenes.workers import Runner, connect_ray
 from teleop.generate.arms import ArmSegments, ArmsPlanDevice, arm_refs, choose_arm_segments, cut_arms, generated_subtasks
 from teleop.generate.plan import SETTLE_S, PlanDevice, Segment, choose_segments, segments_of
 from teleop.generate.resume import Done, Journal, run_identity
-from teleop.generate.scratch import scratch_dir
+from teleop.generate.scratch import scratch_dir, sweep_stale
 from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
@@ -327,6 +327,7 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
     unknown = [f for f in opts.formats if f not in FORMATS]
     if unknown or not opts.formats:
         raise GenerateError(f"format {','.join(unknown) or '(none)'}: choose mcap, hdf5 or both")
+    sweep_stale()  # batch folders that killed workers on this host left (their first batches sweep other hosts)
     if opts.out.exists() and not opts.out.is_dir():
         raise GenerateError(f"{opts.out} exists and is not a directory")
     if opts.ray is not None:  # before any work: a bad address is the only thing said

@@ -3,8 +3,9 @@
 A batch records its attempts in a temporary folder and hands back the bytes of what it kept. A worker
 killed mid-batch (kill -9 of `teleop generate`, a lost Ray task) never runs its cleanup, and its partial
 episodes would stay in the temporary folder for good. So each folder's name says which process on which
-host made it (`teleop-generate-PID@HOST-xxxxxxxx`), and the first batch of every process removes the
-folders of this host's processes that no longer run (this user's only; a live or unknown owner is left).
+host made it (`teleop-generate-PID@HOST-xxxxxxxx`), and every `generate` run, and the first batch of every
+worker process (a Ray node's too), removes the folders of this host's processes that no longer run (this
+user's only; a live or unknown owner is left).
 """
 
 from __future__ import annotations
