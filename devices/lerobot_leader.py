@@ -20,8 +20,9 @@ the leader says eases toward it, at most 0.05 rad or 1 cm (and 0.05 rad of turn)
 tick; status() says "easing in" until it has caught up. A reader thread of its own polls the bus
 (`get_action()`), so a slow or unplugged bus never stalls the control tick; unplugged (its reads
 failing for half a second), the device says "disconnected", sends nothing (the arm holds its last
-target) and tries to reopen the port every second. Retargeting keeps the episode's origin across an unplug, so a leader moved while
-unplugged brings the arm to where it says, eased in, rather than shifting the origin.
+target) and tries to reopen the port every second. Retargeting keeps the episode's origin across an
+unplug, so a leader moved while unplugged brings the arm to where it says, eased in, rather than
+shifting the origin.
 """
 
 from __future__ import annotations

@@ -6,8 +6,9 @@ parsers do not pull in MuJoCo for a command that stops at a bad flag.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from scenes.lazy_names import lazy_names
 
 if TYPE_CHECKING:
     from scenes.assembly.build import Scene, actuator_for_joint, build_scene
@@ -27,14 +28,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'scenes' has no attribute {name!r}")
-    value = getattr(importlib.import_module(home), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, _HOMES, globals())

@@ -17,10 +17,11 @@ from the robot's base, z up) with wxyz quaternions, as MuJoCo writes them.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from scenes.lazy_names import lazy_names
 
 if TYPE_CHECKING:
     from devices.base import Device, DeviceError
@@ -68,17 +69,7 @@ _HOMES = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'teleop' has no attribute {name!r}")
-    value = getattr(importlib.import_module(home), name)
-    globals()[name] = value  # the next use is a plain attribute
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, _HOMES, globals())
 
 
 __all__ = [

@@ -34,6 +34,20 @@ def test_public_names_are_documented():
         assert obj.__doc__ and obj.__doc__.strip(), f"teleop.{name} has no docstring"
 
 
+def test_import_teleop_and_the_command_line_load_no_physics_until_asked():
+    """`import teleop` and `teleop --help` (every command's parser) stay quick: MuJoCo, mink and LeRobot load with
+    the first name that needs them; then every public name is there, in dir() too."""
+    code = ("import sys, teleop, teleop.cli.entry as e; e.build_parser(); "
+            "heavy = sorted(m for m in ('mujoco', 'mink', 'scipy', 'lerobot', 'torch', 'viser') if m in sys.modules); "
+            "print(heavy); teleop.Session; print('mujoco' in sys.modules, sorted(set(teleop.__all__) - set(dir(teleop))))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == ["[]", "True []"], out.stdout
+    with pytest.raises(AttributeError, match="no attribute 'Sesion'"):
+        teleop.Sesion  # noqa: B018 - a misspelt name is an AttributeError, not a KeyError or an import
+
+
 @pytest.mark.e2e  # records, then exports through LeRobot, in a fresh interpreter
 def test_readme_example_runs_verbatim(tmp_path):
     (tmp_path / "scenes").symlink_to(ROOT / "scenes")
