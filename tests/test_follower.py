@@ -272,9 +272,11 @@ def test_resets_are_followed_at_max_step_with_torque_on_and_an_unplugged_arm_is_
             far = np.array([1.2, -0.8, 0.9, 0.2, 1.5])
             _drive(session, follower, lambda: follower.state == "tracking" and follower.max_gap_deg < 2
                    and abs(follower.targets()[0] - math.degrees(1.2)) < 1, "tracking the far pose", [Command(joints=far)])
-            session.reset()
-            _drive(session, follower, lambda: follower.state == "catching up", "catching up after the reset")
-            _drive(session, follower, lambda: follower.state == "tracking", "tracking after the reset")
+            session.reset()  # a new scene: on a loaded machine it may take longer than the whole catch-up below
+            session.step([])  # the new scene's first ctrl: the arm's home
+            home = follower.targets()
+            _drive(session, follower, lambda: follower.state == "tracking" and np.allclose(follower.targets(), home)
+                   and follower.max_gap_deg < 2, "tracking after the reset")
             assert not any(w["value"] == 0 for w in arm.torque_log() if w["t"] > goal_rows(arm)[0][0])  # torque stayed on
             assert follower.status()["clamped"] == 0
             # a cable pulled: shown, then the arm is followed again once it answers
@@ -285,7 +287,15 @@ def test_resets_are_followed_at_max_step_with_torque_on_and_an_unplugged_arm_is_
             _drive(session, follower, lambda: follower.state == "tracking", "tracking after the replug")
         finally:
             follower.close()
-        assert_eased(arm, FAR)
+        goals = assert_eased(arm, FAR)
+        # back home from the far pose at max_step after the reset: the pan joint's goals from the last one at the
+        # far pose pass through the steps between (69 degrees at 5 a goal: 13 on the way; assert_eased checked
+        # each step's size; the emulator's log is whole only now, once the follower let go)
+        pan = [g[1] for g in goals]
+        far_at = max(range(len(pan)), key=lambda k: (abs(pan[k] - pan[-1]), k))
+        back = pan[far_at:]
+        on_the_way = {v for v in back if min(back[0], back[-1]) + 2 < v < max(back[0], back[-1]) - 2}
+        assert abs(back[0] - back[-1]) > 700 and len(on_the_way) >= 12, back
         assert_torque_off_at_end(arm)
         follower.close()  # again: nothing more happens
         assert follower.status()["state"] == "disconnected"

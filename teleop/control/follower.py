@@ -46,7 +46,9 @@ STALL_S = 0.5  # failed sends for this long, none answered, and the follower is 
 PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
 PING_PATIENCE_S = 1.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
 # host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
-CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus
+CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus, tried at least
+CONNECT_PATIENCE_S = 2.0  # this often and for this long (the servos answered our pings just before: a failure here
+# is a reply that came late, which a loaded host or USB adapter makes now and then, not a missing arm)
 _CLAMP_WARNING = "Relative goal position magnitude had to be clamped"  # LeRobot logs this on every clamped send
 
 
@@ -254,14 +256,17 @@ class Follower:
         if unknown:
             raise DeviceError(f"{self.map.source}: {unknown[0]!r} is not a motor of the {spec.kind}")
         self._check_bus(robot)
-        for attempt in range(CONNECT_TRIES):
+        give_up, attempt = time.monotonic() + CONNECT_PATIENCE_S, 0
+        while True:
+            attempt += 1
             try:
                 robot.connect(calibrate=False)  # LeRobot's calibrate() would wait on stdin: never called
                 break
             except Exception as exc:  # noqa: BLE001 - LeRobot's several lines become one
                 _release(robot)  # it may have enabled torque before it failed
-                if attempt == CONNECT_TRIES - 1:
+                if attempt >= CONNECT_TRIES and time.monotonic() >= give_up:
                     raise _open_error(spec, exc) from None
+                time.sleep(0.1)
         self.robot = robot
         logging.getLogger().addFilter(self._filter)
         cal = robot.bus.calibration
