@@ -125,10 +125,19 @@ def test_run_eases_the_follower_in_then_it_follows_the_simulated_arm(tmp_path: P
         first_on_target = next((k for k, g in enumerate(goals) if on_target(g)), None)
         assert first_on_target is not None, f"no goal reached the simulated arm's targets: last {goals[-1]}"
         assert first_on_target >= 19
-        # then every goal is one of the simulated arm's targets (to the raw step LeRobot truncates to)
-        for k, goal in enumerate(goals[first_on_target + 2:], start=first_on_target + 2):
-            gap = min(max(abs(goal[i] - t[i]) for i in range(1, 7)) for t in targets)
-            assert gap <= 2, f"goal {k} {goal} is none of the simulated targets (nearest {gap} raw steps off)"
+        # then every goal heads for one of the simulated arm's targets: it is that target (to the raw step LeRobot
+        # truncates to), or held back on the way from the goal before by LeRobot's max_relative_target, which
+        # counts from the servo's present position (a servo process starved on a loaded machine reports it late)
+        def off_the_way(goal: dict[int, int], before: dict[int, int], target: dict[int, int]) -> int:
+            return max(max(0, min(before[i], target[i]) - goal[i], goal[i] - max(before[i], target[i])) for i in range(1, 7))
+
+        exact = 0
+        for k in range(first_on_target + 2, len(goals)):
+            goal, before = goals[k], goals[k - 1]
+            gap = min(off_the_way(goal, before, t) for t in targets)
+            assert gap <= 2, f"goal {k} {goal} heads for none of the simulated targets (nearest {gap} raw steps off)"
+            exact += min(max(abs(goal[i] - t[i]) for i in range(1, 7)) for t in targets) <= 2
+        assert exact >= (len(goals) - first_on_target - 2) // 2, "most goals are the simulated targets themselves"
         # and the arm moved with the script: the last goal is the end of the move, far from where the hold was
         assert max(abs(goals[-1][i] - targets[0][i]) for i in range(1, 6)) > 30
         assert max(abs(goals[-1][i] - targets[-1][i]) for i in range(1, 7)) <= 8
