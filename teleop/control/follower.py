@@ -19,6 +19,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,7 +45,7 @@ RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
 STALL_S = 0.5  # failed sends for this long, none answered, and the follower is "disconnected"; a busy host or
 # USB adapter drops a reply now and then (counted in `errors`), which is not a pulled cable
 PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
-PING_PATIENCE_S = 1.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
+PING_PATIENCE_S = 3.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
 # host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
 CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus, tried at least
 CONNECT_PATIENCE_S = 2.0  # this often and for this long (the servos answered our pings just before: a failure here
@@ -167,6 +168,18 @@ class _DropClampWarnings(logging.Filter):
         return not str(record.msg).startswith(_CLAMP_WARNING)
 
 
+def _patiently(read: Callable[[], Any], patience_s: float = CONNECT_PATIENCE_S) -> Any:
+    """`read()`, asked again for up to `patience_s` while it raises (a reply late on a loaded host); then its error."""
+    give_up = time.monotonic() + patience_s
+    while True:
+        try:
+            return read()
+        except Exception:  # noqa: BLE001 - LeRobot raises ConnectionError, the SDK IndexError on a short packet
+            if time.monotonic() >= give_up:
+                raise
+            time.sleep(0.05)
+
+
 def _ping(bus: Any, motor: str, give_up: float) -> int | None:
     """A servo's model number, or None if it answers none of PING_TRIES pings, nor any more until `give_up`
     (time.monotonic()); a garbled answer is asked again (the Feetech SDK raises IndexError on a short status packet)."""
@@ -283,7 +296,7 @@ class Follower:
                 hi.append(100.0)
         self._lo, self._hi = np.array(lo), np.array(hi)
         try:
-            self._last = self._present()
+            self._last = _patiently(self._present)
         except Exception as exc:  # noqa: BLE001
             self.close()
             raise DeviceError(f"{spec.port}: the follower stopped answering ({first_line(exc)})") from None
@@ -310,7 +323,12 @@ class Follower:
                 if model != expected:
                     raise DeviceError(f"{spec.port}: servo {bus.motors[name].id} ({name}) is model {model}, not an "
                                       f"{bus.motors[name].model.upper()} ({expected}): is this an SO-101 follower?")
-            if not robot.is_calibrated:
+            try:
+                calibrated = _patiently(lambda: robot.is_calibrated)
+            except Exception as exc:  # noqa: BLE001 - it answered our pings, then stopped
+                raise DeviceError(f"{spec.port}: the follower's servos stopped answering while their calibration was "
+                                  f"read ({first_line(exc)})") from None
+            if not calibrated:
                 raise DeviceError(f"{spec.port}: the follower's servos do not match the calibration in "
                                   f"{robot.calibration_fpath}: run `{spec.calibrate_hint()}`")
         finally:
