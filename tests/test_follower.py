@@ -24,7 +24,8 @@ import pytest
 from devices.base import DeviceError
 from devices.command import Command
 from replay import load_episode
-from teleop.control.follower import Follower, check_pairing, open_follower, parse_follower_spec
+from teleop.control.follower import Follower, open_follower
+from teleop.control.follower_spec import check_pairing, parse_follower_spec
 from teleop.control.session import Session
 from teleop.errors import UsageError
 from tests.servo_emulator import MOTOR_NAMES, FeetechEmulator

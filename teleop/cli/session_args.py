@@ -56,7 +56,8 @@ def follower_from(args: argparse.Namespace, session: Session) -> "Follower | Non
     """
     if getattr(args, "follower", None) is None:
         return None
-    from teleop.control.follower import check_pairing, open_follower, parse_follower_spec
+    from teleop.control.follower import open_follower
+    from teleop.control.follower_spec import check_pairing, parse_follower_spec
 
     check_pairing(parse_follower_spec(args.follower), session.robot.name)  # before LeRobot loads (seconds)
     return open_follower(args.follower, session)

@@ -10,36 +10,28 @@ measured from the servo's present position), and sends it with
 `send_action`. So a follower that starts elsewhere eases to the simulated pose ("catching up") before
 it tracks it ("tracking"), and a reset to the next seed is followed at `max_step`, never as a jump; the
 control tick itself never waits on the serial bus. `close()` stops sending and disables torque (LeRobot's
-`disconnect()`), whatever ended the session. LeRobot is imported only when a follower is opened.
+`disconnect()`), whatever ended the session. LeRobot is imported only when a follower is opened. The
+`--follower` value and the motor map are teleop/control/follower_spec.py.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from devices.base import DeviceError
-from devices.joint_map import GripperRule, JointMap, JointMapError, JointRule, builtin_map_path, load_joint_map
 from devices.serial_ports import DIALOUT_HINT, port_problem
 from scenes.errors import first_line
-from scenes.numbers import number_or_nan
-from teleop.errors import UsageError
+from teleop.control.follower_spec import FollowerSpec, MotorMap, check_pairing, motor_map, parse_follower_spec
 
 if TYPE_CHECKING:  # annotations only
     from teleop.control.session import Session
 
-# follower type -> (the simulated robot it mirrors, the leader type whose joint map it shares)
-FOLLOWERS: dict[str, tuple[str, str]] = {"so101_follower": ("so101", "so101_leader")}
-DEFAULT_MAX_STEP_DEG = 5.0  # degrees per tick
-SPEC_KEYS = ("id", "calibration", "max_step")
 TRACKING_GAP_DEG = 3.0  # tracking: nothing held back by the step limit, every arm joint this close (or max_step)
 RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
 STALL_S = 0.5  # failed sends for this long, none answered, and the follower is "disconnected"; a busy host or
@@ -52,114 +44,6 @@ CONNECT_PATIENCE_S = 2.0  # this often and for this long (the servos answered ou
 # is a reply that came late, which a loaded host or USB adapter makes now and then, not a missing arm)
 _CLAMP_WARNING = "Relative goal position magnitude had to be clamped"  # LeRobot logs this on every clamped send
 
-
-@dataclass(frozen=True)
-class FollowerSpec:
-    """A parsed `--follower` value. max_step_deg: the largest change per joint per tick, degrees."""
-
-    kind: str
-    port: str
-    id: str | None = None
-    calibration: Path | None = None
-    max_step_deg: float = DEFAULT_MAX_STEP_DEG
-
-    @property
-    def robot(self) -> str:
-        """The simulated robot this follower can mirror."""
-        return FOLLOWERS[self.kind][0]
-
-    def calibrate_hint(self) -> str:
-        """The LeRobot command that writes this follower's calibration file."""
-        where = f" --robot.calibration_dir={self.calibration}" if self.calibration is not None else ""
-        return (f"lerobot-calibrate --robot.type={self.kind} --robot.port={self.port} "
-                f"--robot.id={self.id or 'ID'}{where}" + ("" if self.id else " (and add :id=ID to --follower)"))
-
-
-def parse_follower_spec(text: str) -> FollowerSpec:
-    """`TYPE:PORT[:id=NAME][:calibration=DIR][:max_step=DEG]`; a UsageError (one line) names what is wrong."""
-    kind, _, rest = text.partition(":")
-    kind = kind.strip().lower()
-    if kind not in FOLLOWERS:
-        raise UsageError(f"--follower {text}: unknown follower type {kind!r} (known: {', '.join(FOLLOWERS)})")
-    parts = rest.split(":") if rest else []
-    if not parts or not parts[0].strip() or "=" in parts[0]:
-        raise UsageError(f"--follower {text}: give the serial port, e.g. {kind}:/dev/ttyACM0")
-    options: dict[str, str] = {}
-    for part in parts[1:]:
-        key, eq, value = part.partition("=")
-        key = key.strip()
-        if not eq or key not in SPEC_KEYS or not value.strip():
-            raise UsageError(f"--follower {text}: {part!r} is not one of {', '.join(k + '=...' for k in SPEC_KEYS)}")
-        options[key] = value.strip()
-    max_step = DEFAULT_MAX_STEP_DEG
-    if "max_step" in options:
-        max_step = number_or_nan(options["max_step"])
-        if not (math.isfinite(max_step) and 0 < max_step <= 90):
-            raise UsageError(f"--follower {text}: max_step must be degrees per tick, more than 0 and at most 90")
-    calibration = Path(options["calibration"]).expanduser() if "calibration" in options else None
-    return FollowerSpec(kind, parts[0].strip(), options.get("id"), calibration, max_step)
-
-
-def check_pairing(spec: FollowerSpec, robot_name: str) -> None:
-    """A follower mirrors only its own simulated robot (an so101_follower the so101)."""
-    if robot_name != spec.robot:
-        raise UsageError(f"--follower {spec.kind} mirrors the simulated {spec.robot}, not {robot_name!r}: "
-                         f"add --robot {spec.robot}")
-
-
-# --- simulated joints -> LeRobot's numbers ----------------------------------------------------------------
-
-@dataclass(frozen=True)
-class MotorMap:
-    """The simulated arm's joint targets (radians) -> LeRobot's action {"motor.pos": degrees, gripper 0..100}.
-
-    The inverse of the leader's map (q = scale * value + bias), so a leader and a follower agree on
-    what each robot joint angle is on a real arm.
-    """
-
-    joints: tuple[JointRule, ...]  # in the robot's joint order
-    gripper: GripperRule | None
-    source: str  # where the map came from, for messages
-
-    @property
-    def motors(self) -> tuple[str, ...]:
-        return tuple(r.leader for r in self.joints) + ((self.gripper.leader,) if self.gripper else ())
-
-    def values(self, q: np.ndarray, opening: float | None) -> list[float]:
-        """LeRobot's numbers for joint targets `q` (rad, robot order) and a gripper opening 0..1 (None: no gripper)."""
-        out = [(float(v) - r.bias) / r.scale for r, v in zip(self.joints, q)]
-        if self.gripper is not None:
-            g = self.gripper
-            o = 0.0 if opening is None else min(max(opening, 0.0), 1.0)
-            out.append(g.closed + o * (g.open - g.closed))
-        return out
-
-
-def default_leader_map(leader: str, joint_names: tuple[str, ...]) -> JointMap:
-    """The map an SO-10x leader would use if its file were missing: LeRobot's degrees are the robot's angles."""
-    rules = tuple(JointRule(n, n, math.pi / 180.0, 0.0) for n in joint_names)
-    return JointMap(path=Path("<built-in>"), robot="so101", units="degrees", joints=rules,
-                    gripper=GripperRule("gripper", 0.0, 100.0), leader=leader)
-
-
-def motor_map(spec: FollowerSpec, joint_names: tuple[str, ...]) -> MotorMap:
-    """The follower's map for the simulated arm's joints: the paired leader's map file, inverted."""
-    leader = FOLLOWERS[spec.kind][1]
-    path = builtin_map_path(leader)
-    try:
-        joint_map = load_joint_map(path) if path.is_file() else default_leader_map(leader, joint_names)
-    except JointMapError as exc:
-        raise DeviceError(str(exc)) from None
-    if joint_map.units != "degrees":
-        raise DeviceError(f"{joint_map.path}: a follower needs a map in degrees, not {joint_map.units!r}")
-    by_robot = {r.robot: r for r in joint_map.joints}
-    missing = [n for n in joint_names if n not in by_robot]
-    if missing:
-        raise DeviceError(f"{joint_map.path}: no leader joint drives the robot joint {missing[0]!r}")
-    return MotorMap(tuple(by_robot[n] for n in joint_names), joint_map.gripper, str(joint_map.path))
-
-
-# --- the follower -------------------------------------------------------------------------------------------
 
 class _DropClampWarnings(logging.Filter):
     """LeRobot warns on the root logger at every clamped send; easing in clamps every tick: counted instead."""
