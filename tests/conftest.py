@@ -20,6 +20,7 @@ import pytest
 pytest.register_assert_rewrite("tests.support")  # its asserts explain themselves like a test's
 
 from tests.support import write_script  # noqa: E402 - after the rewrite is registered
+from tests.warm_cli import WARM  # noqa: E402
 
 
 @pytest.fixture
@@ -218,6 +219,8 @@ def pytest_configure(config: pytest.Config) -> None:
     runs_tests = hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None)
     if runs_tests and "RAY_TMPDIR" not in os.environ:
         os.environ["RAY_TMPDIR"] = config.stash[RAY_TMPDIR] = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
+    if runs_tests:
+        WARM.settle_environment()  # the environment `teleop` commands are forked with (tests/warm_cli.py)
 
 
 RAY_TMPDIR = pytest.StashKey[str]()
@@ -225,6 +228,7 @@ RAY_TMPDIR = pytest.StashKey[str]()
 
 def pytest_unconfigure(config: pytest.Config) -> None:
     """The Ray temp dir this process made, removed with what Ray left in it (logs, sockets of stopped instances)."""
+    WARM.close()
     if path := config.stash.get(RAY_TMPDIR, None):
         os.environ.pop("RAY_TMPDIR", None)
         shutil.rmtree(path, ignore_errors=True)

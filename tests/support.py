@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 from recorder.format import ArmMeta, EpisodeMeta
+from tests.warm_cli import WARM
 
 if TYPE_CHECKING:
     import gymnasium
@@ -42,9 +43,12 @@ PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"  # the scripted lift pick,
 
 
 def run_cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    """`teleop ARGS...` in a fresh process, as a user would run it."""
+    """`teleop ARGS...` in a fresh process, as a user would run it: forked from this worker's warm process
+    (tests/warm_cli.py: the third-party imports already done) unless the environment asks for a real interpreter."""
     full_env = {**os.environ, **(env or {})}
     full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
+    if WARM.usable_for(full_env):
+        return WARM.run(list(args), full_env, cwd or ROOT, timeout)
     return subprocess.run(
         [sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout, env=full_env, cwd=cwd or ROOT
     )

@@ -1,0 +1,251 @@
+"""`teleop` commands forked from a warm process: a fresh process for each, without paying its imports again.
+
+A `teleop export` spends ~5 s of CPU importing LeRobot (torch, torchvision, HF datasets) before it reads a
+file, a `teleop run` ~1.2 s importing MuJoCo and mink, and the suite runs a few hundred commands on a 2-core
+machine. So each pytest-xdist worker starts one warm process (`python -m tests.warm_cli SOCKET`) that imports
+those third-party libraries once, and forks a child for each command: the child is `python -m teleop ARGS` in
+all that a test can see (its own pid, the exact environment and working folder asked for, its exit code or
+signal, stdout and stderr of its own, stdin from /dev/null) and ends as an interpreter does (atexit handlers,
+non-daemon threads joined). The project's own modules are never imported in the warm process, so each command
+loads them as a fresh interpreter would (lazy imports, import errors and all).
+
+What a forked command cannot show is what happens while the third-party libraries import, and what they read
+from the environment then. `run_cli` (tests/support.py) therefore starts a real interpreter whenever the
+environment differs from the warm process's in anything but the variables in CALL_TIME_ENV (read by the project
+when used, not at import), and the tests of start-up itself (`import teleop` loads no physics, the wheel check)
+start their own interpreters. TELEOP_WARM_CLI=0 turns the warm process off: every command a real interpreter.
+"""
+
+from __future__ import annotations
+
+import atexit
+import gc
+import importlib
+import json
+import os
+import runpy
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import warnings
+from pathlib import Path
+
+# Imported once in the warm process: third-party only (the project's modules load fresh in each command).
+PRELOAD = ("numpy", "scipy.spatial.transform", "mujoco", "mink", "h5py", "mcap.writer", "viser", "gymnasium",
+           "torch", "lerobot.datasets.lerobot_dataset")
+# Variables a command may see changed from the warm process's without a real interpreter: the project reads
+# them when used (tempfile's cached folder is reset in the child).
+CALL_TIME_ENV = frozenset({"PYTEST_CURRENT_TEST", "TMPDIR", "TELEOP_CACHE", "DISPLAY", "COLUMNS", "LINES",
+                           "RAY_TMPDIR"})
+ENV_SWITCH = "TELEOP_WARM_CLI"
+MESSAGE_MAX = 1 << 20  # bytes: a request (argv, environment, folder) as one SOCK_SEQPACKET message
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# -- the warm process -------------------------------------------------------------------------------------
+
+
+def _reap(conn: socket.socket, pid: int) -> None:
+    """Wait for the command `pid` and send its wait status and CPU seconds to the test that asked for it."""
+    _, status, usage = os.wait4(pid, 0)
+    try:
+        conn.send(json.dumps({"status": status, "cpu_s": usage.ru_utime + usage.ru_stime}).encode())
+    except OSError:  # the test gave up (a timeout): nobody to tell
+        pass
+    conn.close()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """End the warm process when the pytest worker that started it is gone (no orphan after a crash)."""
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(0)
+
+
+def _become_command(request: dict, fds: list[int], filters: list) -> None:
+    """In the forked child: become `python -m teleop ARGS` with the request's folder, environment and files."""
+    stdin = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(stdin, 0)
+    os.dup2(fds[0], 1)
+    os.dup2(fds[1], 2)
+    for fd in (stdin, *fds):
+        os.close(fd)
+    os.chdir(request["cwd"])
+    os.environ.clear()
+    os.environ.update(request["env"])
+    tempfile.tempdir = None  # gettempdir() reads TMPDIR again
+    warnings.filters[:] = filters  # as they were after the imports, before the warm process's own
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if "numpy" in sys.modules:  # a fresh interpreter seeds numpy's global generator from the OS; a fork copies it
+        sys.modules["numpy"].random.seed()
+    sys.path[0] = os.getcwd()  # `python -m` puts the working folder first
+    sys.argv = ["-m", *request["argv"]]
+    code = 0
+    try:
+        runpy.run_module("teleop", run_name="__main__", alter_sys=True)
+    except SystemExit as exc:  # teleop/__main__.py exits with main()'s code
+        code = _exit_code(exc.code)
+    except BaseException:
+        sys.excepthook(*sys.exc_info())  # the traceback an interpreter prints
+        code = 1
+    _end_like_an_interpreter(code)
+
+
+def _exit_code(value: object) -> int:
+    """An interpreter's exit code for `sys.exit(value)` (a message is printed to stderr and exits 1)."""
+    if value is None:
+        return 0
+    if isinstance(value, int):
+        return value & 0xFF
+    print(value, file=sys.stderr)
+    return 1
+
+
+def _end_like_an_interpreter(code: int) -> None:
+    """What Python does at exit (join non-daemon threads, then run the atexit handlers, then flush), without
+    finalizing every module: tearing down torch and LeRobot's modules would cost a forked command ~1.5 s of CPU."""
+    main = threading.current_thread()
+    for thread in threading.enumerate():
+        if thread is not main and not thread.daemon:
+            thread.join()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
+def serve(path: str) -> None:
+    """Import PRELOAD, then fork one command per request on the socket at `path` (until the worker ends)."""
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    for name in PRELOAD:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+    filters = list(warnings.filters)
+    gc.freeze()  # the imports' objects: never collected, so a command's collections neither walk nor copy them
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    listener.bind(path)
+    listener.listen(16)
+    print("ready", flush=True)
+    while True:
+        conn, _ = listener.accept()
+        message, fds, _, _ = socket.recv_fds(conn, MESSAGE_MAX, 2)
+        request = json.loads(message)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # "multi-threaded, use of fork()": the reapers
+            pid = os.fork()
+        if pid == 0:
+            listener.close()
+            conn.close()
+            _become_command(request, fds, filters)  # ends the child's interpreter: never returns
+        for fd in fds:
+            os.close(fd)
+        conn.send(json.dumps({"pid": pid}).encode())
+        threading.Thread(target=_reap, args=(conn, pid), daemon=True).start()
+
+
+# -- the tests' side ----------------------------------------------------------------------------------------
+
+
+class WarmCli:
+    """One warm process for this pytest process, started at its first command, ended with the process."""
+
+    def __init__(self) -> None:
+        self.proc: subprocess.Popen | None = None
+        self.folder = ""
+        self.env: dict[str, str] | None = None  # the warm process's environment (settle_environment)
+        self.lock = threading.Lock()
+        self.failed = False
+        self.forked = 0  # commands forked
+        self.cpu_s = 0.0  # CPU seconds of the commands forked for this process (tests/suite_time.py counts them)
+
+    def settle_environment(self) -> None:
+        """Take the warm process's environment now: os.environ as run_cli completes it. tests/conftest.py calls
+        this once the session's variables are set and before any test changes one; otherwise the first command
+        does (a test's own variables then make later commands run in real interpreters: slower, never wrong)."""
+        self.env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+    def _start(self) -> bool:
+        if self.env is None:
+            self.settle_environment()
+        self.folder = tempfile.mkdtemp(prefix="teleop-warm-cli-")
+        with open(os.path.join(self.folder, "log"), "wb") as log:  # the warm process's own output (imports)
+            self.proc = subprocess.Popen([sys.executable, "-m", "tests.warm_cli", self.socket_path()],
+                                         stdout=subprocess.PIPE, stderr=log, stdin=subprocess.DEVNULL,
+                                         env=self.env, cwd=ROOT)
+        atexit.register(self.close)
+        if self.proc.stdout.readline().strip() != b"ready":  # blocks for the imports
+            self.close()
+            return False
+        return True
+
+    def socket_path(self) -> str:
+        return os.path.join(self.folder, "socket")
+
+    def close(self) -> None:
+        """End the warm process (commands it forked run on) and remove its folder."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        if self.folder:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+    def usable_for(self, env: dict[str, str]) -> bool:
+        """Whether a command with `env` may be forked: the warm process runs, and imports would see the same."""
+        if os.environ.get(ENV_SWITCH, "1") == "0" or self.failed:
+            return False
+        with self.lock:
+            if self.proc is None:
+                self.failed = not self._start()
+                if self.failed:
+                    return False
+            if self.proc.poll() is not None:
+                return False
+        keys = (self.env.keys() | env.keys()) - CALL_TIME_ENV
+        return all(self.env.get(k) == env.get(k) for k in keys)
+
+    def run(self, args: list[str], env: dict[str, str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
+        """`python -m teleop ARGS` forked from the warm process: what subprocess.run(capture_output) would give."""
+        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+                socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET) as conn:
+            conn.connect(self.socket_path())
+            request = {"argv": list(args), "env": env, "cwd": str(Path(cwd).resolve())}
+            socket.send_fds(conn, [json.dumps(request).encode()], [out.fileno(), err.fileno()])
+            pid = json.loads(conn.recv(MESSAGE_MAX))["pid"]
+            self.forked += 1
+            conn.settimeout(timeout)
+            try:
+                reply = conn.recv(MESSAGE_MAX)
+            except TimeoutError:
+                os.kill(pid, signal.SIGKILL)
+                raise subprocess.TimeoutExpired(["teleop", *args], timeout) from None
+            status = json.loads(reply)
+            self.cpu_s += status["cpu_s"]
+            out.seek(0)
+            err.seek(0)
+            stdout, stderr = _text(out.read()), _text(err.read())
+        code = os.waitstatus_to_exitcode(status["status"])  # -N: ended by signal N, as subprocess says
+        return subprocess.CompletedProcess([sys.executable, "-m", "teleop", *args], code, stdout, stderr)
+
+
+def _text(data: bytes) -> str:
+    """Bytes as subprocess.run(text=True) gives them: decoded, universal newlines."""
+    return data.decode(errors="replace").replace("\r\n", "\n").replace("\r", "\n")
+
+
+WARM = WarmCli()
+
+if __name__ == "__main__":
+    serve(sys.argv[1])
