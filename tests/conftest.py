@@ -77,6 +77,14 @@ def _sigint_handler_kept():
     assert after == before, f"SIGINT handler changed from {before!r} to {after!r}"
 
 
+@pytest.fixture(autouse=True)
+def _warm_commands_outside_the_quick_suite(request):
+    """A unit test's `teleop` commands run in real interpreters: starting the warm process (tests/warm_cli.py:
+    LeRobot's imports, seconds of CPU per worker) would cost `pytest -m unit` more than it saves it."""
+    WARM.wanted = request.node.get_closest_marker("unit") is None
+    yield
+
+
 @pytest.fixture(scope="module")
 def browser():
     """A headless system Chromium (Playwright), one per test module."""

@@ -168,6 +168,7 @@ class WarmCli:
         self.env: dict[str, str] | None = None  # the warm process's environment (settle_environment)
         self.lock = threading.Lock()
         self.failed = False
+        self.wanted = True  # tests/conftest.py: not for unit tests (the quick suite would wait for the imports)
         self.forked = 0  # commands forked
         self.cpu_s = 0.0  # CPU seconds of the commands forked for this process (tests/suite_time.py counts them)
 
@@ -204,7 +205,7 @@ class WarmCli:
 
     def usable_for(self, env: dict[str, str]) -> bool:
         """Whether a command with `env` may be forked: the warm process runs, and imports would see the same."""
-        if os.environ.get(ENV_SWITCH, "1") == "0" or self.failed:
+        if os.environ.get(ENV_SWITCH, "1") == "0" or self.failed or not self.wanted:
             return False
         with self.lock:
             if self.proc is None:
