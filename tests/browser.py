@@ -28,7 +28,6 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -259,12 +258,12 @@ class ServeProcess:
         self.url = f"http://127.0.0.1:{self.port}"
         self.status_file = Path(workdir) / f"serve-status-{self.port}.json"
         self.log_file = Path(workdir) / f"serve-{self.port}.log"
-        command = [sys.executable, "-m", "teleop", "serve", "--port", str(self.port),
-                   "--status-file", str(self.status_file), *args]
+        from tests.support import popen_cli
+
+        command = ["serve", "--port", str(self.port), "--status-file", str(self.status_file), *args]
         self._log = open(self.log_file, "w")
         self.status_file.unlink(missing_ok=True)  # a server before on this port (a restart) left its own
-        self.proc = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT,
-                                     env={**os.environ, **(env or {})}, cwd=Path(__file__).resolve().parents[2])
+        self.proc = popen_cli(command, self._log, env=env, cwd=Path(__file__).resolve().parents[2])
         deadline = time.monotonic() + ready_timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:

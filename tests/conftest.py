@@ -77,12 +77,24 @@ def _sigint_handler_kept():
     assert after == before, f"SIGINT handler changed from {before!r} to {after!r}"
 
 
-@pytest.fixture(autouse=True)
-def _warm_commands_outside_the_quick_suite(request):
-    """A unit test's `teleop` commands run in real interpreters: starting the warm process (tests/warm_cli.py:
-    LeRobot's imports, seconds of CPU per worker) would cost `pytest -m unit` more than it saves it."""
-    WARM.wanted = request.node.get_closest_marker("unit") is None
-    yield
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The environment `teleop` commands are forked with (tests/warm_cli.py): the test modules have set theirs
+    (HF_HUB_OFFLINE) and no test has run."""
+    WARM.settle_environment()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    """No test leaves the environment changed for the next (tests/warm_cli.py: restore_environment)."""
+    WARM.restore_environment()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Before any fixture of the test (a module's too): a unit test's `teleop` commands run in real interpreters,
+    since starting the warm process (tests/warm_cli.py: LeRobot's imports, seconds of CPU per worker) would cost
+    `pytest -m unit` more than it saves it; every other test's are forked from the warm process."""
+    WARM.wanted = item.get_closest_marker("unit") is None
 
 
 @pytest.fixture(scope="module")
@@ -227,8 +239,6 @@ def pytest_configure(config: pytest.Config) -> None:
     runs_tests = hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None)
     if runs_tests and "RAY_TMPDIR" not in os.environ:
         os.environ["RAY_TMPDIR"] = config.stash[RAY_TMPDIR] = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
-    if runs_tests:
-        WARM.settle_environment()  # the environment `teleop` commands are forked with (tests/warm_cli.py)
 
 
 RAY_TMPDIR = pytest.StashKey[str]()

@@ -54,6 +54,18 @@ def run_cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path
     )
 
 
+def popen_cli(args: list[str], stdout, env: dict | None = None, cwd: Path | None = None):
+    """`teleop ARGS...` started in a fresh process (as run_cli: forked from the warm process when it may be),
+    stdout and stderr to the file `stdout`: a subprocess.Popen, or what the tests use of one (pid, poll, wait,
+    send_signal, terminate, kill, returncode)."""
+    full_env = {**os.environ, **(env or {})}
+    full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
+    if WARM.usable_for(full_env):
+        return WARM.popen(list(args), full_env, cwd or ROOT, stdout.fileno(), stdout.fileno())
+    return subprocess.Popen([sys.executable, "-m", "teleop", *args], stdout=stdout, stderr=subprocess.STDOUT,
+                            env=full_env, cwd=cwd or ROOT)
+
+
 def run_json(*args: str, **kwargs) -> dict:
     """Run a CLI command that prints one JSON object, and parse it."""
     result = run_cli(*args, **kwargs)
@@ -467,9 +479,8 @@ class CampaignProcess:
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_path = file.parent / f"campaign-{self.port}.log"
         self._log = open(self.log_path, "w")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "teleop", "campaign", str(file), "--port", str(self.port), "--token", CAMPAIGN_ADMIN,
-             "--join-token", CAMPAIGN_JOIN, *flags], stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT)
+        self.proc = popen_cli(["campaign", str(file), "--port", str(self.port), "--token", CAMPAIGN_ADMIN,
+                               "--join-token", CAMPAIGN_JOIN, *flags], self._log)
         wait_until(lambda: self.proc.poll() is not None or self._answers(), 60, "the lobby to answer")
         assert self.proc.poll() is None, self.log()
 

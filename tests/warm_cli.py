@@ -40,8 +40,14 @@ PRELOAD = ("numpy", "scipy.spatial.transform", "mujoco", "mink", "h5py", "mcap.w
            "torch", "lerobot.datasets.lerobot_dataset")
 # Variables a command may see changed from the warm process's without a real interpreter: the project reads
 # them when used (tempfile's cached folder is reset in the child).
+# PYOPENGL_PLATFORM (MuJoCo's EGL module), LD_LIBRARY_PATH (OpenCV's loader) and PYGAME_HIDE_SUPPORT_PROMPT are
+# set by imports the warm process does not do; LP_NUM_THREADS is read at the first GL context.
 CALL_TIME_ENV = frozenset({"PYTEST_CURRENT_TEST", "TMPDIR", "TELEOP_CACHE", "DISPLAY", "COLUMNS", "LINES",
-                           "RAY_TMPDIR"})
+                           "RAY_TMPDIR", "LP_NUM_THREADS", "SVT_LOG", "PYOPENGL_PLATFORM", "LD_LIBRARY_PATH",
+                           "PYGAME_HIDE_SUPPORT_PROMPT"})
+# Set while PRELOAD imports, as every command that loads LeRobot sets them first (teleop/cli/export.py's
+# quiet_environment: `export`, `eval`, `serve --policy`): HF's libraries read them at import.
+IMPORT_ENV = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
 ENV_SWITCH = "TELEOP_WARM_CLI"
 MESSAGE_MAX = 1 << 20  # bytes: a request (argv, environment, folder) as one SOCK_SEQPACKET message
 ROOT = Path(__file__).resolve().parent.parent
@@ -126,11 +132,16 @@ def _end_like_an_interpreter(code: int) -> None:
 def serve(path: str) -> None:
     """Import PRELOAD, then fork one command per request on the socket at `path` (until the worker ends)."""
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    before = dict(os.environ)
+    for key, value in IMPORT_ENV.items():
+        os.environ.setdefault(key, value)
     for name in PRELOAD:
         try:
             importlib.import_module(name)
         except ImportError:
             pass
+    os.environ.clear()  # the commands get the environment of their request; this one is only for tidiness
+    os.environ.update(before)
     filters = list(warnings.filters)
     gc.freeze()  # the imports' objects: never collected, so a command's collections neither walk nor copy them
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -168,7 +179,9 @@ class WarmCli:
         self.env: dict[str, str] | None = None  # the warm process's environment (settle_environment)
         self.lock = threading.Lock()
         self.failed = False
-        self.wanted = True  # tests/conftest.py: not for unit tests (the quick suite would wait for the imports)
+        # tests/conftest.py sets it for each test but a unit one (the quick suite would wait for the imports);
+        # elsewhere (the bench times real start-ups with tests/browser.py) every command is a real interpreter
+        self.wanted = False
         self.forked = 0  # commands forked
         self.cpu_s = 0.0  # CPU seconds of the commands forked for this process (tests/suite_time.py counts them)
 
@@ -191,6 +204,19 @@ class WarmCli:
             self.close()
             return False
         return True
+
+    def restore_environment(self) -> None:
+        """Undo what a test left changed in os.environ (but CALL_TIME_ENV): a variable an import reads, left
+        behind by an in-process command (export's quiet_environment), would make every later command of this
+        worker a real interpreter, and would reach the next test's commands however they start."""
+        if self.env is None:
+            return
+        settled = {k: v for k, v in self.env.items() if k != "PYTHONPATH"}
+        for key in (os.environ.keys() | settled.keys()) - CALL_TIME_ENV - {"PYTHONPATH"}:
+            if key not in settled:
+                os.environ.pop(key, None)
+            elif os.environ.get(key) != settled[key]:
+                os.environ[key] = settled[key]
 
     def socket_path(self) -> str:
         return os.path.join(self.folder, "socket")
@@ -217,28 +243,77 @@ class WarmCli:
         keys = (self.env.keys() | env.keys()) - CALL_TIME_ENV
         return all(self.env.get(k) == env.get(k) for k in keys)
 
+    def popen(self, args: list[str], env: dict[str, str], cwd: Path, stdout: int, stderr: int) -> WarmPopen:
+        """`python -m teleop ARGS` forked from the warm process, writing to the file descriptors given."""
+        conn = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        conn.connect(self.socket_path())
+        request = {"argv": list(args), "env": env, "cwd": str(Path(cwd).resolve())}
+        socket.send_fds(conn, [json.dumps(request).encode()], [stdout, stderr])
+        pid = json.loads(conn.recv(MESSAGE_MAX))["pid"]
+        self.forked += 1
+        return WarmPopen(self, conn, pid, [sys.executable, "-m", "teleop", *args])
+
     def run(self, args: list[str], env: dict[str, str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
         """`python -m teleop ARGS` forked from the warm process: what subprocess.run(capture_output) would give."""
-        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
-                socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET) as conn:
-            conn.connect(self.socket_path())
-            request = {"argv": list(args), "env": env, "cwd": str(Path(cwd).resolve())}
-            socket.send_fds(conn, [json.dumps(request).encode()], [out.fileno(), err.fileno()])
-            pid = json.loads(conn.recv(MESSAGE_MAX))["pid"]
-            self.forked += 1
-            conn.settimeout(timeout)
+        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+            proc = self.popen(args, env, cwd, out.fileno(), err.fileno())
             try:
-                reply = conn.recv(MESSAGE_MAX)
-            except TimeoutError:
-                os.kill(pid, signal.SIGKILL)
-                raise subprocess.TimeoutExpired(["teleop", *args], timeout) from None
-            status = json.loads(reply)
-            self.cpu_s += status["cpu_s"]
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+                raise
             out.seek(0)
             err.seek(0)
             stdout, stderr = _text(out.read()), _text(err.read())
-        code = os.waitstatus_to_exitcode(status["status"])  # -N: ended by signal N, as subprocess says
-        return subprocess.CompletedProcess([sys.executable, "-m", "teleop", *args], code, stdout, stderr)
+        return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+
+
+class WarmPopen:
+    """A command forked from the warm process, with what the tests use of subprocess.Popen: pid, poll, wait,
+    send_signal, terminate, kill, returncode (-N: ended by signal N). Its output went to the descriptors given."""
+
+    def __init__(self, warm: WarmCli, conn: socket.socket, pid: int, args: list[str]) -> None:
+        self.warm, self.conn, self.pid, self.args = warm, conn, pid, args
+        self.returncode: int | None = None
+
+    def _ended(self, reply: bytes) -> int:
+        self.conn.close()
+        if not reply:  # the warm process is gone (the worker is ending): the command was its child
+            self.returncode = -signal.SIGKILL
+            return self.returncode
+        status = json.loads(reply)
+        self.warm.cpu_s += status["cpu_s"]
+        self.returncode = os.waitstatus_to_exitcode(status["status"])
+        return self.returncode
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.conn.setblocking(False)
+            try:
+                return self._ended(self.conn.recv(MESSAGE_MAX))
+            except BlockingIOError:
+                return None
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None:
+            self.conn.settimeout(timeout)
+            try:
+                return self._ended(self.conn.recv(MESSAGE_MAX))
+            except TimeoutError:
+                raise subprocess.TimeoutExpired(self.args, timeout) from None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
 
 
 def _text(data: bytes) -> str:
