@@ -23,6 +23,7 @@ import pytest
 
 import teleop
 from replay.export.pieces import journal_dir
+from tests.support import run_cli
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,7 +66,7 @@ def _export(src: Path, out: Path, *extra: str, wait: bool = True):
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     if not wait:
         return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    return run_cli(*cmd[3:], env={"HF_HUB_OFFLINE": "1"}, timeout=600)
 
 
 def _frames(root: Path) -> tuple[dict, list[dict]]:

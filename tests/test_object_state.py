@@ -9,8 +9,6 @@ annotate rules.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import mujoco
@@ -22,6 +20,7 @@ from replay.features import ENV_STATE
 from teleop.learn.evaluate import EvalOptions, evaluate
 from teleop.learn.gym_env import TeleopEnv
 from teleop.learn.policy import ScriptedPolicy
+from tests.support import run_cli
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS = ROOT / "scenes" / "scripts"
@@ -48,9 +47,7 @@ def lift_episode(tmp_path_factory) -> Path:
 
 
 def _export(episode: Path, out: Path, *extra: str) -> None:
-    cmd = [sys.executable, "-m", "teleop", "export", str(episode), "--out", str(out), "--repo-id", "local/os",
-           "--cameras", "none", *extra]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = run_cli("export", str(episode), "--out", str(out), "--repo-id", "local/os", "--cameras", "none", *extra)
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 

@@ -5,20 +5,19 @@ from __future__ import annotations
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from tests import browser as headless
+from tests.support import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def serve(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "teleop", "serve", *args], cwd=REPO, capture_output=True,
-                          text=True, timeout=timeout)
+    return run_cli("serve", *args, timeout=timeout)
 
 
 def test_port_in_use_is_a_usage_error():

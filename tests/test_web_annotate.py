@@ -18,6 +18,7 @@ from replay.subtasks.sidecar import Subtask, sidecar_path
 from replay.subtasks.edit import EditRefused, SubtaskEdits, even_split
 from teleop.web.replay_page.subtasks import step_from_browser, timeline_html
 from tests import browser as headless
+from tests.support import run_json
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scenes" / "scripts" / "stack_pick.json"  # grasp the cube, place it on cube_base
@@ -53,16 +54,13 @@ def test_values_from_the_browser_are_checked():
 @pytest.fixture(scope="module")
 def episode(tmp_path_factory) -> Path:
     work = tmp_path_factory.mktemp("annotate")
-    subprocess.run([sys.executable, "-m", "teleop", "run", "--scene", "stack", "--device", f"script:{SCRIPT}",
-                    "--record", str(work / "eps"), "--json"], cwd=REPO, check=True, capture_output=True, timeout=120)
+    run_json("run", "--scene", "stack", "--device", f"script:{SCRIPT}", "--record", str(work / "eps"), "--json")
     (path,) = sorted((work / "eps").glob("*.mcap"))
     return path
 
 
 def _inspect_subtasks(path: Path) -> list[dict] | None:
-    out = subprocess.run([sys.executable, "-m", "teleop", "inspect", str(path), "--json"], cwd=REPO, check=True,
-                         capture_output=True, text=True, timeout=60).stdout
-    return json.loads(out)["subtasks"]
+    return run_json("inspect", str(path), "--json")["subtasks"]
 
 
 @contextlib.contextmanager

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from tests import browser as headless
+from tests.support import run_cli, run_json
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = {"steps": [
@@ -30,8 +31,7 @@ def episode(tmp_path_factory) -> Path:
     work = tmp_path_factory.mktemp("replay")
     script = work / "lift.json"
     script.write_text(json.dumps(SCRIPT))
-    subprocess.run([sys.executable, "-m", "teleop", "run", "--device", f"script:{script}", "--record", str(work / "eps"),
-                    "--json"], cwd=REPO, check=True, capture_output=True, timeout=120)
+    run_json("run", "--device", f"script:{script}", "--record", str(work / "eps"), "--json")
     (path,) = sorted((work / "eps").glob("*.mcap"))
     return path
 
@@ -42,8 +42,7 @@ def test_replay_serve_port_in_use(episode):
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        result = subprocess.run([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
-                                cwd=REPO, capture_output=True, text=True, timeout=60)
+        result = run_cli("replay", str(episode), "--serve", "--port", str(port), timeout=60)
     assert result.returncode == 2 and f"port {port}" in result.stderr
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import pytest
 
 
 from tests import browser as headless  # noqa: E402
-from tests.support import wait_until  # noqa: E402
+from tests.support import run_cli, wait_until  # noqa: E402
 
 
 REPO = Path(__file__).resolve().parents[1]
@@ -114,8 +113,7 @@ def test_record_drag_save_replays_exactly(page, server, record_dir):
     status = server.wait_for(lambda s: s["episodes_saved"] == saved_before + 1 and not s["recording"], what="the save")
     new = sorted(set(episode_files(record_dir)) - files_before)
     assert len(new) == 1, new
-    result = subprocess.run([sys.executable, "-m", "teleop", "replay", str(new[0]), "--verify"], cwd=REPO,
-                            capture_output=True, text=True, timeout=120)
+    result = run_cli("replay", str(new[0]), "--verify", timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
     checked = server.wait_for(lambda s: s["verified"].get(str(new[0])) is not None, what="the server's replay check")
     assert checked["verified"][str(new[0])] is True
