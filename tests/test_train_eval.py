@@ -14,19 +14,25 @@ from pathlib import Path
 
 import pytest
 
+from tests.warm_cli import IGNORE_ENV, WARM
+
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "bench" / "train_eval.sh"
 
 
-def _env() -> dict[str, str]:
+def _env(folder: Path) -> dict[str, str]:
+    """The script's environment; its `teleop` commands forked from the warm process (tests/warm_cli.py)."""
     bindir = Path(sys.executable).parent
+    teleop, warm = WARM.teleop_command(folder)
     # BATCH: 8 samples a step, not the bench's 64 (two steps of ACT on 2x64 images of 96x96 took ~15 s of the CPU)
-    return {**os.environ, "PYTHON": sys.executable, "TELEOP": str(bindir / "teleop"),
-            "LEROBOT_TRAIN": str(bindir / "lerobot-train"), "WORKERS": "0", "BATCH": "8", "HF_HUB_OFFLINE": "1"}
+    ours = {"PYTHON": sys.executable, "TELEOP": teleop, "LEROBOT_TRAIN": str(bindir / "lerobot-train"), "WORKERS": "0",
+            "BATCH": "8"}
+    return {**os.environ, **ours, "HF_HUB_OFFLINE": "1", **warm, IGNORE_ENV: ",".join(ours)}
 
 
 def _run(cwd: Path, *args: str) -> tuple[dict, str]:
-    proc = subprocess.run(["bash", str(SCRIPT), *args], capture_output=True, text=True, timeout=900, env=_env(), cwd=cwd)
+    proc = subprocess.run(["bash", str(SCRIPT), *args], capture_output=True, text=True, timeout=900, env=_env(cwd),
+                          cwd=cwd)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == 1, proc.stdout  # one JSON object; progress went to stderr
@@ -89,7 +95,7 @@ def test_the_recipe_runs_end_to_end_with_hand_pose_actions(tmp_path):
                                   ["lift", "--max-seconds", "0"], ["lift", "--max-seconds", "soon"]])
 def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args):
     proc = subprocess.run(["bash", str(SCRIPT), *args, "--work", str(tmp_path / "w")], capture_output=True, text=True,
-                          timeout=60, env=_env())
+                          timeout=60, env=_env(tmp_path))
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert proc.stdout == "" and len(proc.stderr.strip().splitlines()) == 1 and "train_eval.sh" in proc.stderr
 

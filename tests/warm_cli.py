@@ -44,13 +44,22 @@ PRELOAD = ("numpy", "scipy.spatial.transform", "mujoco", "mink", "h5py", "mcap.w
 # set by imports the warm process does not do; LP_NUM_THREADS is read at the first GL context.
 CALL_TIME_ENV = frozenset({"PYTEST_CURRENT_TEST", "TMPDIR", "TELEOP_CACHE", "DISPLAY", "COLUMNS", "LINES",
                            "RAY_TMPDIR", "LP_NUM_THREADS", "SVT_LOG", "PYOPENGL_PLATFORM", "LD_LIBRARY_PATH",
-                           "PYGAME_HIDE_SUPPORT_PROMPT"})
+                           "PYGAME_HIDE_SUPPORT_PROMPT", "TELEOP_WARM_SOCKET", "TELEOP_WARM_IGNORE"})
 # Set while PRELOAD imports, as every command that loads LeRobot sets them first (teleop/cli/export.py's
 # quiet_environment: `export`, `eval`, `serve --policy`): HF's libraries read them at import.
 IMPORT_ENV = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
 ENV_SWITCH = "TELEOP_WARM_CLI"
+SOCKET_ENV = "TELEOP_WARM_SOCKET"  # for the client (a script's $TELEOP): the warm process's socket
+IGNORE_ENV = "TELEOP_WARM_IGNORE"  # for the client: its caller's own variables (comma list), read by no import
 MESSAGE_MAX = 1 << 20  # bytes: a request (argv, environment, folder) as one SOCK_SEQPACKET message
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def same_imports(warm_env: dict[str, str], env: dict[str, str], ignore=()) -> bool:
+    """Whether imports would see the same in `env` as in the warm process's `warm_env`: equal but for
+    CALL_TIME_ENV and the names in `ignore` (a caller's own variables, read by no import)."""
+    keys = (warm_env.keys() | env.keys()) - CALL_TIME_ENV - set(ignore)
+    return all(warm_env.get(k) == env.get(k) for k in keys)
 
 
 # -- the warm process -------------------------------------------------------------------------------------
@@ -152,6 +161,12 @@ def serve(path: str) -> None:
         conn, _ = listener.accept()
         message, fds, _, _ = socket.recv_fds(conn, MESSAGE_MAX, 2)
         request = json.loads(message)
+        if request.get("check") and not same_imports(before, request["env"], request.get("ignore", ())):
+            for fd in fds:
+                os.close(fd)
+            conn.send(json.dumps({"refused": True}).encode())
+            conn.close()
+            continue
         sys.stdout.flush()
         sys.stderr.flush()
         with warnings.catch_warnings():
@@ -218,6 +233,17 @@ class WarmCli:
             elif os.environ.get(key) != settled[key]:
                 os.environ[key] = settled[key]
 
+    def teleop_command(self, folder: Path) -> tuple[str, dict[str, str]]:
+        """An executable that runs `teleop ARGS` forked from this warm process, for a script's $TELEOP, and the
+        variables its environment needs (a real `teleop` and none when the warm process cannot serve)."""
+        real = str(Path(sys.executable).parent / "teleop")
+        if not self.usable_for(self.env or {}):
+            return real, {}
+        wrapper = Path(folder) / "teleop"
+        wrapper.write_text(f"#!/bin/sh\nexec {sys.executable} -m tests.warm_cli --client \"$@\"\n")
+        wrapper.chmod(0o755)
+        return str(wrapper), {SOCKET_ENV: self.socket_path(), "PYTHONPATH": self.env["PYTHONPATH"]}
+
     def socket_path(self) -> str:
         return os.path.join(self.folder, "socket")
 
@@ -240,8 +266,7 @@ class WarmCli:
                     return False
             if self.proc.poll() is not None:
                 return False
-        keys = (self.env.keys() | env.keys()) - CALL_TIME_ENV
-        return all(self.env.get(k) == env.get(k) for k in keys)
+        return same_imports(self.env, env)
 
     def popen(self, args: list[str], env: dict[str, str], cwd: Path, stdout: int, stderr: int) -> WarmPopen:
         """`python -m teleop ARGS` forked from the warm process, writing to the file descriptors given."""
@@ -323,5 +348,38 @@ def _text(data: bytes) -> str:
 
 WARM = WarmCli()
 
+def client(args: list[str]) -> None:
+    """`python -m tests.warm_cli --client ARGS`: `teleop ARGS` for a script a test runs (bench/train_eval.sh's
+    $TELEOP: see WarmCli.teleop_command), forked from the warm process at $TELEOP_WARM_SOCKET with this
+    process's environment, folder, stdout and stderr; its exit code or signal is this process's. When the warm
+    process is not there or refuses (the environment differs where imports look), a real interpreter instead."""
+    path = os.environ.get(SOCKET_ENV, "")
+    if path:
+        try:
+            conn = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            conn.connect(path)
+        except OSError:
+            conn = None
+        if conn is not None:
+            ignore = [k for k in os.environ.get(IGNORE_ENV, "").split(",") if k]
+            request = {"argv": args, "env": dict(os.environ), "cwd": os.getcwd(), "check": True, "ignore": ignore}
+            socket.send_fds(conn, [json.dumps(request).encode()], [1, 2])
+            reply = json.loads(conn.recv(MESSAGE_MAX))
+            if "pid" in reply:
+                pid = reply["pid"]
+                for sig in (signal.SIGINT, signal.SIGTERM):  # passed on: Ctrl-C or a kill reaches the command
+                    signal.signal(sig, lambda number, _frame: os.kill(pid, number))
+                ended = conn.recv(MESSAGE_MAX)
+                code = os.waitstatus_to_exitcode(json.loads(ended)["status"]) if ended else -signal.SIGKILL
+                if code < 0:
+                    signal.signal(-code, signal.SIG_DFL)
+                    os.kill(os.getpid(), -code)
+                os._exit(code)
+    os.execv(sys.executable, [sys.executable, "-m", "teleop", *args])
+
+
 if __name__ == "__main__":
-    serve(sys.argv[1])
+    if sys.argv[1] == "--client":
+        client(sys.argv[2:])
+    else:
+        serve(sys.argv[1])
