@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import tomllib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import mujoco
@@ -30,7 +31,7 @@ from devices.registry import KNOWN_DEVICES, DeviceOptions, open_devices
 from devices.retarget import Retarget, to_base, to_world
 from replay.episode import load_episode
 from tests.servo_emulator import MOTOR_NAMES, DynamixelEmulator, FeetechEmulator, from_lerobot
-from tests.support import ROOT, assert_one_line_error, run_json, wait_until
+from tests.support import ROOT, assert_one_line_error, run_cli, run_json, wait_until
 
 ARM_JOINTS = MOTOR_NAMES[:5]  # shoulder_pan .. wrist_roll: LeRobot's motor names and the sim so101's joints
 WALL_MINUS_MONOTONIC = time.time() - time.monotonic()  # s: recorded wall_time -> the emulators' clock
@@ -377,16 +378,16 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             "koch on the panda": (f"koch_leader:{koch.port}:id=koch:calibration={tmp_path / 'kcal'}", "panda",
                                   ["joint for joint only", "--robot so101"]),
         }
-        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-        procs = {}
-        for i, (name, (word, robot, _)) in enumerate(cases.items()):  # in parallel: each pays for importing LeRobot
-            procs[name] = subprocess.Popen(
-                [sys.executable, "-m", "teleop", "run", "--device", word, "--robot", robot, "--scene", "lift", "--seconds", "1",
-                 "--record", str(tmp_path / f"rec{i}")], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        results = {name: (p, *p.communicate(timeout=180)) for name, p in procs.items()}
-    for name, (proc, out, err) in results.items():
+        def run(i: int, word: str, robot: str) -> subprocess.CompletedProcess:
+            return run_cli("run", "--device", word, "--robot", robot, "--scene", "lift", "--seconds", "1",
+                           "--record", str(tmp_path / f"rec{i}"), timeout=180)
+
+        with ThreadPoolExecutor(len(cases)) as pool:  # at once: each opens LeRobot's bus on its own emulator
+            futures = {name: pool.submit(run, i, word, robot) for i, (name, (word, robot, _)) in enumerate(cases.items())}
+            results = {name: future.result() for name, future in futures.items()}
+    for name, result in results.items():
         try:
-            assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, out, err), *cases[name][2])
+            assert_one_line_error(result, *cases[name][2])
         except AssertionError as exc:
             raise AssertionError(f"{name}: {exc}") from None
     recorded = sorted(str(p) for p in tmp_path.glob("rec*/*") if p.suffix in (".mcap", ".h5", ".hdf5"))

@@ -191,8 +191,8 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
             held = server.wait_for(lambda s: s["driver"] == "policy" and s["policy"]["policy_steps"] > 50,
                                    what="the policy to drive", timeout_s=30)
             assert held["target_pos"][0][2] == pytest.approx(home_z + RISE_M, abs=0.01)
-            page.get_by_text("Driving: policy").first.wait_for(timeout=10000)
-            page.get_by_text("Inference:").first.wait_for(timeout=10000)
+            page.get_by_text("Driving: policy").first.wait_for(timeout=60000)
+            page.get_by_text("Inference:").first.wait_for(timeout=60000)
             headless.click_button(page, "Record")
             # Record starts the episode from the seed's initial state (the arm home) and the policy from its start:
             # it lifts the target again, and holds it
@@ -204,7 +204,7 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
             taken = server.wait_for(lambda s: s["driver"] == "operator", what="the drag to take over")
             assert taken["policy"]["takeovers"] == 1 and taken["policy"]["handovers"][-1]["reason"] == "gizmo moved"
             server.wait_for(lambda s: s["target_pos"][0][0] > before[0] + 0.03, what="the dragged target")
-            page.get_by_text("Driving: operator").first.wait_for(timeout=10000)
+            page.get_by_text("Driving: operator").first.wait_for(timeout=60000)
             time.sleep(0.5)  # some operator steps
             # Where the operator left it: the drag's last pointer moves may land after the first status past +3 cm.
             moved = server.status()

@@ -268,7 +268,7 @@ def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(s
             page = headless.open_page(browser, served.url + "/?half", size=(800, 600))
             assert page.evaluate("window.__contractHead === true")
             # The head script asked for half resolution before viser's client read the URL.
-            page.wait_for_function(f"() => ({SCENE_CANVAS}) !== undefined", timeout=30000)
+            page.wait_for_function(f"() => ({SCENE_CANVAS}) !== undefined", timeout=60000)
             ratio = page.evaluate(f"() => {{ const c = {SCENE_CANVAS}; return c.width / c.clientWidth; }}")
             assert page.evaluate("window.devicePixelRatio") == 1
             assert abs(ratio - 0.5) < 0.05, broken(
@@ -280,7 +280,7 @@ def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(s
                                 15.0, "the page's client")[-1]
             run_javascript(client, "window.__contractRan = 6 * 7;")
             try:
-                page.wait_for_function("window.__contractRan === 42", timeout=15000)
+                page.wait_for_function("window.__contractRan === 42", timeout=60000)
             except playwright_api.TimeoutError:
                 pytest.fail(broken("a RunJavascriptMessage queued on the client's connection did not run in the page",
                                    "the page's key, gamepad and SpaceMouse scripts"))
@@ -288,7 +288,7 @@ def test_in_a_browser_the_head_script_fixed_dpr_scripts_and_button_labels_work(s
             found = f"""() => [...document.querySelectorAll({GUI_BUTTON_SELECTOR!r})]
                           .some((b) => b.textContent.trim() === {CONNECT_SPACEMOUSE!r})"""
             try:
-                page.wait_for_function(found, timeout=15000)
+                page.wait_for_function(found, timeout=60000)
             except playwright_api.TimeoutError:
                 pytest.fail(broken(f"gui.add_button({CONNECT_SPACEMOUSE!r}) is not drawn as a "
                                    f"{GUI_BUTTON_SELECTOR!r} element with that text",

@@ -174,7 +174,7 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
     try:
         server.wait_for(lambda s: s["clients"] >= 1, what="the page to connect")
         # The page's key script got its input channel open too, past the token check.
-        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=30000)
+        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
         assert server.wait_for(lambda s: s["input"]["connections"] >= 1, what="the input channel")["input_dropped"] == 0
         time.sleep(2.0)  # the first meshes drawn (a drag that still grabs nothing is made again)
         headless.dismiss_toasts(page)
@@ -188,7 +188,7 @@ def test_a_browser_with_the_token_draws_and_drags_and_its_cookie_lets_it_back(se
         page.goto(server.url, timeout=60000)
         page.wait_for_selector("canvas", timeout=60000)
         server.wait_for(lambda s: s["clients"] >= 1, what="the page to connect again by its cookie")
-        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=30000)
+        page.wait_for_function("window.__teleopInput && window.__teleopInput.connected()", timeout=60000)
     finally:
         page.close()
 

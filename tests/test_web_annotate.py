@@ -7,8 +7,6 @@ import io
 import json
 import re
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from replay.subtasks.sidecar import Subtask, sidecar_path
 from replay.subtasks.edit import EditRefused, SubtaskEdits, even_split
 from teleop.web.replay_page.subtasks import step_from_browser, timeline_html
 from tests import browser as headless
-from tests.support import run_json
+from tests.support import popen_cli, run_json
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scenes" / "scripts" / "stack_pick.json"  # grasp the cube, place it on cube_base
@@ -70,8 +68,7 @@ def viewer_page(episode: Path, log_path: Path):
     import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     port = headless.free_port()
     with open(log_path, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
-                                cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+        proc = popen_cli(["replay", str(episode), "--serve", "--port", str(port)], log)
     try:
         deadline = time.monotonic() + 60
         while "open http" not in log_path.read_text():

@@ -143,7 +143,7 @@ def test_the_phone_page_moves_the_target_only_while_the_clutch_is_held(browser, 
     page = browser.new_page(viewport={"width": 400, "height": 800}, has_touch=False)
     page.goto(server.url + "/phone", timeout=60000)
     try:
-        page.wait_for_function("window.__teleopPhone !== undefined", timeout=30000)
+        page.wait_for_function("window.__teleopPhone !== undefined", timeout=60000)
 
         def orient(alpha: float) -> None:
             page.evaluate(f"window.dispatchEvent(new DeviceOrientationEvent('deviceorientation', "
@@ -207,7 +207,7 @@ def test_the_phone_page_uses_webxr_position_where_the_browser_has_it(browser, se
     page.add_init_script(FAKE_XR)
     page.goto(server.url + "/phone", timeout=60000)
     try:
-        page.locator("#xr").wait_for(state="visible", timeout=30000)  # offered only where AR is supported
+        page.locator("#xr").wait_for(state="visible", timeout=60000)  # offered only where AR is supported
         page.locator("#xr").click()
         server.wait_for(lambda s: "phone (WebXR)" in s["devices"]["phone"], what="the phone on WebXR")
         start = _settled(server)

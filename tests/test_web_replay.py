@@ -6,15 +6,13 @@ import json
 import re
 import signal
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from tests import browser as headless
-from tests.support import run_cli, run_json
+from tests.support import popen_cli, run_cli, run_json
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = {"steps": [
@@ -50,8 +48,7 @@ def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
     import playwright.sync_api as playwright_api  # the test extra installs it; Chromium comes from run.sh
     port = headless.free_port()
     log = open(tmp_path / "replay.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(port)],
-                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    proc = popen_cli(["replay", str(episode), "--serve", "--port", str(port)], log)
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and "open http" not in (tmp_path / "replay.log").read_text():

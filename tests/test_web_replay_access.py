@@ -189,7 +189,7 @@ def test_a_browser_needs_the_token_to_see_the_episode_and_save_its_subtasks(view
     assert not sidecar.exists()
     page = headless.open_page(browser, viewer.url + "/?token=" + token, size=(1000, 700))
     try:
-        page.get_by_text(episode.name).first.wait_for(timeout=30000)
+        page.get_by_text(episode.name).first.wait_for(timeout=60000)
         page.get_by_text("Subtasks").first.wait_for(timeout=60_000)
         headless.click_button(page, "Save")
         page.wait_for_function("() => [...document.querySelectorAll('*')].some(e => /saved to /.test(e.textContent))",
