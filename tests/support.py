@@ -66,6 +66,17 @@ def popen_cli(args: list[str], stdout, env: dict | None = None, cwd: Path | None
                             env=full_env, cwd=cwd or ROOT)
 
 
+def run_script(argv: list[str], env: dict, cwd: Path, timeout: float, ignore=()) -> subprocess.CompletedProcess:
+    """A console script (`lerobot-train ARGS`, argv[0] its path) with environment `env` in a fresh process, as
+    run_cli: forked from the warm process unless `env` differs where imports look (`ignore`: the test's own
+    variables, read by no import, e.g. WANDB_MODE)."""
+    # PYTHONPATH: the script's own needs none, and the forked child has the project on its path as the warm
+    # process has (no module of LeRobot's is named like one of ours)
+    if WARM.usable_for(env, (*ignore, "PYTHONPATH")):
+        return WARM.run(argv[1:], env, cwd, timeout, script=argv[0])
+    return subprocess.run(argv, capture_output=True, text=True, env=env, cwd=cwd, timeout=timeout)
+
+
 def run_json(*args: str, **kwargs) -> dict:
     """Run a CLI command that prints one JSON object, and parse it."""
     result = run_cli(*args, **kwargs)

@@ -9,13 +9,12 @@ is whatever it is: the tests check the report and the recorded rollouts).
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from tests.support import PICK, assert_one_line_error, run_cli, run_json, run_main
+from tests.support import PICK, assert_one_line_error, run_cli, run_json, run_main, run_script
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -42,7 +41,7 @@ def trained(tmp_path_factory):
             "--policy.device=cpu", "--policy.push_to_hub=false", "--policy.pretrained_backbone_weights=null",
             "--steps=2", "--batch_size=2", "--num_workers=0", "--wandb.enable=false", f"--output_dir={root / 'out'}"]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled", "CUDA_VISIBLE_DEVICES": ""}
-    result = subprocess.run(argv, capture_output=True, text=True, cwd=root, env=env, timeout=900)
+    result = run_script(argv, env, root, 900, ignore=("WANDB_MODE", "CUDA_VISIBLE_DEVICES"))
     assert result.returncode == 0, result.stderr[-3000:]
     model = root / "out" / "checkpoints" / "last" / "pretrained_model"
     assert (model / "config.json").is_file()

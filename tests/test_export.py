@@ -18,7 +18,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from tests.support import PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_main, write_script
+from tests.support import (PICK, ROOT, assert_one_line_error, column, open_dataset, record_script, run_cli, run_main,
+                           run_script, write_script)
 
 import lerobot  # noqa: E402,F401  (the test command installs the lerobot extra)
 os.environ["HF_HUB_OFFLINE"] = "1"  # nothing may be downloaded, ever
@@ -388,7 +389,7 @@ def test_act_policy_trains_on_exported_dataset_with_the_readme_command(exported,
     (tmp_path / "datasets").mkdir()
     (tmp_path / "datasets" / "lift").symlink_to(exported["out"], target_is_directory=True)
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled", "CUDA_VISIBLE_DEVICES": ""}
-    result = subprocess.run([exe, *argv[1:]], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=900)
+    result = run_script([exe, *argv[1:]], env, tmp_path, 900, ignore=("WANDB_MODE", "CUDA_VISIBLE_DEVICES"))
     assert result.returncode == 0, result.stderr[-3000:]
 
     model_dir = tmp_path / "outputs" / "act_lift" / "checkpoints" / "000002" / "pretrained_model"

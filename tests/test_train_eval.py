@@ -25,8 +25,8 @@ def _env(folder: Path) -> dict[str, str]:
     bindir = Path(sys.executable).parent
     teleop, warm = WARM.teleop_command(folder)
     # BATCH: 8 samples a step, not the bench's 64 (two steps of ACT on 2x64 images of 96x96 took ~15 s of the CPU)
-    ours = {"PYTHON": sys.executable, "TELEOP": teleop, "LEROBOT_TRAIN": str(bindir / "lerobot-train"), "WORKERS": "0",
-            "BATCH": "8"}
+    train = WARM.script_command(folder, str(bindir / "lerobot-train"))
+    ours = {"PYTHON": sys.executable, "TELEOP": teleop, "LEROBOT_TRAIN": train, "WORKERS": "0", "BATCH": "8"}
     return {**os.environ, **ours, "HF_HUB_OFFLINE": "1", **warm, IGNORE_ENV: ",".join(ours)}
 
 

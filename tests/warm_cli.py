@@ -100,10 +100,14 @@ def _become_command(request: dict, fds: list[int], filters: list) -> None:
     if "numpy" in sys.modules:  # a fresh interpreter seeds numpy's global generator from the OS; a fork copies it
         sys.modules["numpy"].random.seed()
     sys.path[0] = os.getcwd()  # `python -m` puts the working folder first
-    sys.argv = ["-m", *request["argv"]]
     code = 0
     try:
-        runpy.run_module("teleop", run_name="__main__", alter_sys=True)
+        if request.get("script"):  # a console script (lerobot-train): as its own interpreter would run it
+            sys.argv = [request["script"], *request["argv"]]
+            runpy.run_path(request["script"], run_name="__main__")
+        else:
+            sys.argv = ["-m", *request["argv"]]
+            runpy.run_module("teleop", run_name="__main__", alter_sys=True)
     except SystemExit as exc:  # teleop/__main__.py exits with main()'s code
         code = _exit_code(exc.code)
     except BaseException:
@@ -233,6 +237,16 @@ class WarmCli:
             elif os.environ.get(key) != settled[key]:
                 os.environ[key] = settled[key]
 
+    def script_command(self, folder: Path, script: str) -> str:
+        """An executable in `folder` that runs the console `script` (lerobot-train) forked from this warm process
+        (with teleop_command's variables), for a script's $LEROBOT_TRAIN; `script` itself when it cannot serve."""
+        if not self.usable_for(self.env or {}):
+            return script
+        wrapper = Path(folder) / Path(script).name
+        wrapper.write_text(f"#!/bin/sh\nexec {sys.executable} -m tests.warm_cli --client-script {script} \"$@\"\n")
+        wrapper.chmod(0o755)
+        return str(wrapper)
+
     def teleop_command(self, folder: Path) -> tuple[str, dict[str, str]]:
         """An executable that runs `teleop ARGS` forked from this warm process, for a script's $TELEOP, and the
         variables its environment needs (a real `teleop` and none when the warm process cannot serve)."""
@@ -255,8 +269,9 @@ class WarmCli:
         if self.folder:
             shutil.rmtree(self.folder, ignore_errors=True)
 
-    def usable_for(self, env: dict[str, str]) -> bool:
-        """Whether a command with `env` may be forked: the warm process runs, and imports would see the same."""
+    def usable_for(self, env: dict[str, str], ignore=()) -> bool:
+        """Whether a command with `env` may be forked: the warm process runs, and imports would see the same
+        (`ignore`: the caller's own variables, read by no import)."""
         if os.environ.get(ENV_SWITCH, "1") == "0" or self.failed or not self.wanted:
             return False
         with self.lock:
@@ -266,22 +281,26 @@ class WarmCli:
                     return False
             if self.proc.poll() is not None:
                 return False
-        return same_imports(self.env, env)
+        return same_imports(self.env, env, ignore)
 
-    def popen(self, args: list[str], env: dict[str, str], cwd: Path, stdout: int, stderr: int) -> WarmPopen:
-        """`python -m teleop ARGS` forked from the warm process, writing to the file descriptors given."""
+    def popen(self, args: list[str], env: dict[str, str], cwd: Path, stdout: int, stderr: int,
+              script: str | None = None) -> WarmPopen:
+        """`python -m teleop ARGS` (or the console `script` ARGS) forked from the warm process, writing to the
+        file descriptors given."""
         conn = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         conn.connect(self.socket_path())
-        request = {"argv": list(args), "env": env, "cwd": str(Path(cwd).resolve())}
+        request = {"argv": list(args), "env": env, "cwd": str(Path(cwd).resolve()), "script": script}
         socket.send_fds(conn, [json.dumps(request).encode()], [stdout, stderr])
         pid = json.loads(conn.recv(MESSAGE_MAX))["pid"]
         self.forked += 1
-        return WarmPopen(self, conn, pid, [sys.executable, "-m", "teleop", *args])
+        return WarmPopen(self, conn, pid, [script, *args] if script else [sys.executable, "-m", "teleop", *args])
 
-    def run(self, args: list[str], env: dict[str, str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
-        """`python -m teleop ARGS` forked from the warm process: what subprocess.run(capture_output) would give."""
+    def run(self, args: list[str], env: dict[str, str], cwd: Path, timeout: float,
+            script: str | None = None) -> subprocess.CompletedProcess:
+        """`python -m teleop ARGS` (or `script` ARGS) forked from the warm process: what
+        subprocess.run(capture_output) would give."""
         with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-            proc = self.popen(args, env, cwd, out.fileno(), err.fileno())
+            proc = self.popen(args, env, cwd, out.fileno(), err.fileno(), script)
             try:
                 proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -348,7 +367,7 @@ def _text(data: bytes) -> str:
 
 WARM = WarmCli()
 
-def client(args: list[str]) -> None:
+def client(args: list[str], script: str | None = None) -> None:
     """`python -m tests.warm_cli --client ARGS`: `teleop ARGS` for a script a test runs (bench/train_eval.sh's
     $TELEOP: see WarmCli.teleop_command), forked from the warm process at $TELEOP_WARM_SOCKET with this
     process's environment, folder, stdout and stderr; its exit code or signal is this process's. When the warm
@@ -362,7 +381,8 @@ def client(args: list[str]) -> None:
             conn = None
         if conn is not None:
             ignore = [k for k in os.environ.get(IGNORE_ENV, "").split(",") if k]
-            request = {"argv": args, "env": dict(os.environ), "cwd": os.getcwd(), "check": True, "ignore": ignore}
+            request = {"argv": args, "env": dict(os.environ), "cwd": os.getcwd(), "check": True, "ignore": ignore,
+                       "script": script}
             socket.send_fds(conn, [json.dumps(request).encode()], [1, 2])
             reply = json.loads(conn.recv(MESSAGE_MAX))
             if "pid" in reply:
@@ -375,11 +395,15 @@ def client(args: list[str]) -> None:
                     signal.signal(-code, signal.SIG_DFL)
                     os.kill(os.getpid(), -code)
                 os._exit(code)
+    if script:
+        os.execv(script, [script, *args])
     os.execv(sys.executable, [sys.executable, "-m", "teleop", *args])
 
 
 if __name__ == "__main__":
     if sys.argv[1] == "--client":
         client(sys.argv[2:])
+    elif sys.argv[1] == "--client-script":  # --client-script PATH ARGS: a console script (lerobot-train) likewise
+        client(sys.argv[3:], script=sys.argv[2])
     else:
         serve(sys.argv[1])
