@@ -1,19 +1,24 @@
 """`teleop` commands forked from a warm process: a fresh process for each, without paying its imports again.
 
-A `teleop export` spends ~5 s of CPU importing LeRobot (torch, torchvision, HF datasets) before it reads a
-file, a `teleop run` ~1.2 s importing MuJoCo and mink, and the suite runs a few hundred commands on a 2-core
-machine. So each pytest-xdist worker starts one warm process (`python -m tests.warm_cli SOCKET`) that imports
-those third-party libraries once, and forks a child for each command: the child is `python -m teleop ARGS` in
-all that a test can see (its own pid, the exact environment and working folder asked for, its exit code or
-signal, stdout and stderr of its own, stdin from /dev/null) and ends as an interpreter does (atexit handlers,
-non-daemon threads joined). The project's own modules are never imported in the warm process, so each command
-loads them as a fresh interpreter would (lazy imports, import errors and all).
+A `teleop export` spends ~7 s of CPU importing LeRobot (torch, torchvision, HF datasets) before it reads a
+file (measured: 12.6 s of CPU for a small export from a cold start, 3.4 s forked), a `teleop run` ~1 s importing
+MuJoCo and mink (1.5 s against 0.7), and the suite runs a few hundred commands on a 2-core machine. So each
+pytest-xdist worker starts one warm process (`python -m tests.warm_cli SOCKET`) that imports those third-party
+libraries once, and forks a child for each command: the child is `python -m teleop ARGS` in all that a test can
+see (its own pid, the exact environment and working folder asked for, its exit code or signal, stdout and stderr
+of its own, stdin from /dev/null) and ends as an interpreter does (atexit handlers, non-daemon threads joined).
+The project's own modules are never imported in the warm process, so each command loads them as a fresh
+interpreter would (lazy imports, import errors and all).
 
 What a forked command cannot show is what happens while the third-party libraries import, and what they read
 from the environment then. `run_cli` (tests/support.py) therefore starts a real interpreter whenever the
 environment differs from the warm process's in anything but the variables in CALL_TIME_ENV (read by the project
 when used, not at import), and the tests of start-up itself (`import teleop` loads no physics, the wheel check)
 start their own interpreters. TELEOP_WARM_CLI=0 turns the warm process off: every command a real interpreter.
+
+Three ways in: WarmCli.run / popen (tests/support.py's run_cli, popen_cli, run_script: a console script such as
+`lerobot-train` is run as its own file would be), and `python -m tests.warm_cli --client ARGS` (or
+`--client-script PATH ARGS`) for a shell script a test runs, whose environment the warm process checks itself.
 """
 
 from __future__ import annotations
