@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 
 from recorder.format import ArmMeta, EpisodeMeta
-from tests.warm_cli import WARM
+from tests.warm_cli import WARM, with_project_path
 
 if TYPE_CHECKING:
     import gymnasium
@@ -45,8 +45,7 @@ PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"  # the scripted lift pick,
 def run_cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """`teleop ARGS...` in a fresh process, as a user would run it: forked from this worker's warm process
     (tests/warm_cli.py: the third-party imports already done) unless the environment asks for a real interpreter."""
-    full_env = {**os.environ, **(env or {})}
-    full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
+    full_env = with_project_path({**os.environ, **(env or {})})
     if WARM.usable_for(full_env):
         return WARM.run(list(args), full_env, cwd or ROOT, timeout)
     return subprocess.run(
@@ -58,8 +57,7 @@ def popen_cli(args: list[str], stdout, env: dict | None = None, cwd: Path | None
     """`teleop ARGS...` started in a fresh process (as run_cli: forked from the warm process when it may be),
     stdout and stderr to the file `stdout`: a subprocess.Popen, or what the tests use of one (pid, poll, wait,
     send_signal, terminate, kill, returncode)."""
-    full_env = {**os.environ, **(env or {})}
-    full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
+    full_env = with_project_path({**os.environ, **(env or {})})
     if WARM.usable_for(full_env):
         return WARM.popen(list(args), full_env, cwd or ROOT, stdout.fileno(), stdout.fileno())
     return subprocess.Popen([sys.executable, "-m", "teleop", *args], stdout=stdout, stderr=subprocess.STDOUT,

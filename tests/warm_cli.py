@@ -60,6 +60,11 @@ MESSAGE_MAX = 1 << 20  # bytes: a request (argv, environment, folder) as one SOC
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def with_project_path(env) -> dict[str, str]:
+    """`env` with the project first on PYTHONPATH, as a test's command runs (its code, not an installed copy)."""
+    return {**env, "PYTHONPATH": str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")}
+
+
 def same_imports(warm_env: dict[str, str], env: dict[str, str], ignore=()) -> bool:
     """Whether imports would see the same in `env` as in the warm process's `warm_env`: equal but for
     CALL_TIME_ENV and the names in `ignore` (a caller's own variables, read by no import)."""
@@ -213,7 +218,7 @@ class WarmCli:
         """Take the warm process's environment now: os.environ as run_cli completes it. tests/conftest.py calls
         this once the session's variables are set and before any test changes one; otherwise the first command
         does (a test's own variables then make later commands run in real interpreters: slower, never wrong)."""
-        self.env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        self.env = with_project_path(os.environ)
 
     def _start(self) -> bool:
         if self.env is None:
@@ -242,26 +247,27 @@ class WarmCli:
             elif os.environ.get(key) != settled[key]:
                 os.environ[key] = settled[key]
 
+    def _wrapper(self, folder: Path, name: str, client_args: str) -> str:
+        """An executable `folder/name` that runs `python -m tests.warm_cli CLIENT_ARGS "$@"`."""
+        wrapper = Path(folder) / name
+        wrapper.write_text(f"#!/bin/sh\nexec {sys.executable} -m tests.warm_cli {client_args} \"$@\"\n")
+        wrapper.chmod(0o755)
+        return str(wrapper)
+
     def script_command(self, folder: Path, script: str) -> str:
         """An executable in `folder` that runs the console `script` (lerobot-train) forked from this warm process
         (with teleop_command's variables), for a script's $LEROBOT_TRAIN; `script` itself when it cannot serve."""
         if not self.usable_for(self.env or {}):
             return script
-        wrapper = Path(folder) / Path(script).name
-        wrapper.write_text(f"#!/bin/sh\nexec {sys.executable} -m tests.warm_cli --client-script {script} \"$@\"\n")
-        wrapper.chmod(0o755)
-        return str(wrapper)
+        return self._wrapper(folder, Path(script).name, f"--client-script {script}")
 
     def teleop_command(self, folder: Path) -> tuple[str, dict[str, str]]:
         """An executable that runs `teleop ARGS` forked from this warm process, for a script's $TELEOP, and the
         variables its environment needs (a real `teleop` and none when the warm process cannot serve)."""
-        real = str(Path(sys.executable).parent / "teleop")
         if not self.usable_for(self.env or {}):
-            return real, {}
-        wrapper = Path(folder) / "teleop"
-        wrapper.write_text(f"#!/bin/sh\nexec {sys.executable} -m tests.warm_cli --client \"$@\"\n")
-        wrapper.chmod(0o755)
-        return str(wrapper), {SOCKET_ENV: self.socket_path(), "PYTHONPATH": self.env["PYTHONPATH"]}
+            return str(Path(sys.executable).parent / "teleop"), {}
+        wrapper = self._wrapper(folder, "teleop", "--client")
+        return wrapper, {SOCKET_ENV: self.socket_path(), "PYTHONPATH": self.env["PYTHONPATH"]}
 
     def socket_path(self) -> str:
         return os.path.join(self.folder, "socket")
