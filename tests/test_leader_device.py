@@ -357,11 +357,12 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
     """A missing port, no servo answering, a wrong servo model, no calibration file, a mismatched one, and a koch
     leader on the Panda: each stops `teleop run` with one line and exit 2 before anything is recorded."""
     with (FeetechEmulator.start(tmp_path / "ok", role="leader") as good,
+          FeetechEmulator.start(tmp_path / "ok2", role="leader") as good2,
           FeetechEmulator.start(tmp_path / "none", ids=[], role="leader") as empty,
           FeetechEmulator.start(tmp_path / "wrong", model=1284, role="leader") as wrong,
           DynamixelEmulator.start(tmp_path / "koch", role="leader") as koch):
         good.write_calibration_file(tmp_path / "cal", "arm")
-        good.write_calibration_file(tmp_path / "bad", "arm", mismatch=True)
+        good2.write_calibration_file(tmp_path / "bad", "arm", mismatch=True)
         wrong.write_calibration_file(tmp_path / "wcal", "arm")
         koch.write_calibration_file(tmp_path / "kcal", "koch")
         (tmp_path / "empty").mkdir()
@@ -373,7 +374,7 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             "no calibration": (f"so101_leader:{good.port}:id=arm:calibration={tmp_path / 'empty'}", "so101",
                                ["no calibration file", f"lerobot-calibrate --teleop.type=so101_leader --teleop.port={good.port} "
                                                        "--teleop.id=arm"]),
-            "mismatched calibration": (f"so101_leader:{good.port}:id=arm:calibration={tmp_path / 'bad'}", "so101",
+            "mismatched calibration": (f"so101_leader:{good2.port}:id=arm:calibration={tmp_path / 'bad'}", "so101",
                                        ["does not match", "lerobot-calibrate --teleop.type=so101_leader"]),
             "koch on the panda": (f"koch_leader:{koch.port}:id=koch:calibration={tmp_path / 'kcal'}", "panda",
                                   ["joint for joint only", "--robot so101"]),
@@ -382,6 +383,8 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             return run_cli("run", "--device", word, "--robot", robot, "--scene", "lift", "--seconds", "1",
                            "--record", str(tmp_path / f"rec{i}"), timeout=180)
 
+        ports = [word.split(":")[1] for word, _, _ in cases.values()]
+        assert len(set(ports)) == len(ports), ports  # two commands on one pseudo-terminal would garble each other's packets
         with ThreadPoolExecutor(len(cases)) as pool:  # at once: each opens LeRobot's bus on its own emulator
             futures = {name: pool.submit(run, i, word, robot) for i, (name, (word, robot, _)) in enumerate(cases.items())}
             results = {name: future.result() for name, future in futures.items()}
