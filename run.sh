@@ -107,6 +107,9 @@ case "$first" in
         make_venv "test,lerobot,train,cluster,hardware"
         robomimic_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
+        # One OpenMP/MKL thread per process: three workers share the 2 cores, and torch's intra-op threads only
+        # spin against each other there (bench/train_eval.sh sets the same for its training and evaluation)
+        export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
         checks=0  # CI: the linter and a normal (non-editable) install before the tests; the tests run either way
         set +e
         if [ -n "${TELEOP_CI_CHECKS:-}" ]; then

@@ -47,9 +47,11 @@ PRELOAD = ("numpy", "scipy.spatial.transform", "mujoco", "mink", "h5py", "mcap.w
 # them when used (tempfile's cached folder is reset in the child).
 # PYOPENGL_PLATFORM (MuJoCo's EGL module), LD_LIBRARY_PATH (OpenCV's loader) and PYGAME_HIDE_SUPPORT_PROMPT are
 # set by imports the warm process does not do; LP_NUM_THREADS is read at the first GL context.
+# SHLVL, PWD, OLDPWD and _ are a shell's bookkeeping (a script's commands carry them; no import reads them).
 CALL_TIME_ENV = frozenset({"PYTEST_CURRENT_TEST", "TMPDIR", "TELEOP_CACHE", "DISPLAY", "COLUMNS", "LINES",
                            "RAY_TMPDIR", "LP_NUM_THREADS", "SVT_LOG", "PYOPENGL_PLATFORM", "LD_LIBRARY_PATH",
-                           "PYGAME_HIDE_SUPPORT_PROMPT", "TELEOP_WARM_SOCKET", "TELEOP_WARM_IGNORE"})
+                           "PYGAME_HIDE_SUPPORT_PROMPT", "TELEOP_WARM_SOCKET", "TELEOP_WARM_IGNORE",
+                           "SHLVL", "PWD", "OLDPWD", "_"})
 # Set while PRELOAD imports, as every command that loads LeRobot sets them first (teleop/cli/export.py's
 # quiet_environment: `export`, `eval`, `serve --policy`): HF's libraries read them at import.
 IMPORT_ENV = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
@@ -67,9 +69,19 @@ def with_project_path(env) -> dict[str, str]:
 
 def same_imports(warm_env: dict[str, str], env: dict[str, str], ignore=()) -> bool:
     """Whether imports would see the same in `env` as in the warm process's `warm_env`: equal but for
-    CALL_TIME_ENV and the names in `ignore` (a caller's own variables, read by no import)."""
-    keys = (warm_env.keys() | env.keys()) - CALL_TIME_ENV - set(ignore)
-    return all(warm_env.get(k) == env.get(k) for k in keys)
+    CALL_TIME_ENV and the names in `ignore` (a caller's own variables, read by no import). PYTHONPATH compares
+    as its folders with repeats dropped (a script that puts the project first again finds the same modules);
+    an IMPORT_ENV variable may be unset (a command sets it before it loads LeRobot) or have the value the warm
+    process imported with."""
+    keys = (warm_env.keys() | env.keys()) - CALL_TIME_ENV - set(ignore) - {"PYTHONPATH"} - IMPORT_ENV.keys()
+    return (all(warm_env.get(k) == env.get(k) for k in keys)
+            and all(env.get(k) in (None, warm_env.get(k, v)) for k, v in IMPORT_ENV.items())
+            and _search_path(warm_env) == _search_path(env))
+
+
+def _search_path(env: dict[str, str]) -> list[str]:
+    """PYTHONPATH's folders in order, each once."""
+    return list(dict.fromkeys(env.get("PYTHONPATH", "").split(os.pathsep))) if "PYTHONPATH" in env else []
 
 
 # -- the warm process -------------------------------------------------------------------------------------
