@@ -156,6 +156,19 @@ def children_of(pid: int) -> dict[int, str]:
     return found
 
 
+def descendants_of(pid: int) -> dict[int, str]:
+    """{pid: start time} of the processes under `pid`: its children, theirs, and so on (a job's local workers
+    are the children of multiprocessing's fork server, itself a child of the job)."""
+    found: dict[int, str] = {}
+    todo = [pid]
+    while todo:
+        for child, started in children_of(todo.pop()).items():
+            if child not in found:
+                found[child] = started
+                todo.append(child)
+    return found
+
+
 def alive(pid: int, started: str) -> bool:
     """Still running: the same process (same start time) and not a zombie waiting to be reaped."""
     try:

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from tests.support import alive, children_of
+from tests.support import alive, descendants_of
 
 import numpy as np
 import pytest
@@ -87,7 +87,7 @@ def test_kill_9_then_resume_keeps_num_episodes_without_duplicates(sources, tmp_p
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.05)
         time.sleep(rng.uniform(0.0, 0.6))
-        children = children_of(proc.pid)
+        children = descendants_of(proc.pid)
         proc.kill()
         proc.wait(timeout=10)
         deadline = time.monotonic() + 5.0

@@ -5,9 +5,10 @@ single-process export (`export_serial`) into a dataset of its own under a tempor
 directory beside the output. LeRobot's `aggregate_datasets` then joins the shards in
 order (parquet data re-indexed, videos joined by stream copy, episode metadata, tasks,
 statistics) into the output, so it holds the frames, values and features one process
-would have written. Local workers are spawned, never forked: an OpenGL context does not
-survive fork. Ray tasks get the episode files as bytes and send their shard back as a tar,
-so a cluster needs no shared file system, only this package installed on its nodes.
+would have written. Local workers never fork from the driver (an OpenGL context does not
+survive a fork): they fork from multiprocessing's fork server, which imported LeRobot once
+for all of them. Ray tasks get the episode files as bytes and send their shard back as a
+tar, so a cluster needs no shared file system, only this package installed on its nodes.
 
 LeRobot and Ray are optional extras, imported only when an export starts.
 """
@@ -19,7 +20,6 @@ import importlib.util
 import io
 import itertools
 import json
-import multiprocessing
 import shutil
 import sys
 import tarfile
@@ -40,11 +40,13 @@ from replay.export.lerobot_io import LEROBOT_HINT, ExportError, dir_size, load_l
 from replay.export.options import ExportOptions, ExportSummary
 from replay.export.pieces import is_interrupted
 from replay.export.serial import export_serial, operator_meta
-from scenes.workers import ClusterError, Runner, WorkerLost, shielded
+from scenes.workers import ClusterError, Runner, WorkerLost, shielded, worker_context
 
 # Two shards per worker even out episodes of different lengths, once there are enough episodes for
 # that to matter; each shard costs ~1 s more in the merge (LeRobot loads its episode metadata).
 SHARDS_PER_WORKER = 2
+# What the local workers' fork server imports once for all of them (LeRobot's dataset: seconds of CPU each)
+SHARD_PRELOAD = (__name__, "lerobot.datasets.lerobot_dataset", "av")
 
 
 @dataclass
@@ -233,7 +235,7 @@ def export_parallel(paths: list, opts: ExportOptions, log: Callable[[str], None]
     progress = None
     try:
         if runner is None:  # local processes, each with a queue back to the bar
-            progress = multiprocessing.get_context("spawn").Queue()
+            progress = worker_context().Queue()
             runner = _runner(opts, min(parallel, len(shards)), cancel, progress)
         with runner:
             results, interrupted, t0 = _run(runner, shards, shard_opts, bar, progress, finished)
@@ -355,11 +357,12 @@ def _restate_indices(root: Path) -> None:
 
 
 def _runner(opts: ExportOptions, workers: int, cancel: threading.Event | None, progress=None) -> Runner:
-    """The shards' runner: `workers` spawned processes (even one: shards never run in the driver), or Ray."""
+    """The shards' runner: `workers` local processes (even one: shards never run in the driver), or Ray."""
     try:
         if opts.ray is not None:
             return Runner(workers, ray=opts.ray, ray_options={"max_retries": 0}, cancel=cancel)
-        return Runner(workers, setup=_init_worker, setup_args=(progress,), cancel=cancel, processes=True)
+        return Runner(workers, setup=_init_worker, setup_args=(progress,), cancel=cancel, processes=True,
+                      preload=SHARD_PRELOAD)
     except ClusterError as exc:  # no Ray, or nothing at the address: one line, as export_dataset raises
         raise ExportError(str(exc)) from None
 
@@ -371,7 +374,7 @@ def _run(runner: Runner, shards: list[_Shard], opts: ExportOptions, bar, progres
     `finished`: shards an interrupted run already exported whole (--resume); the others run, a shard
     that was cut short continuing from its last whole piece (its journal).
 
-    Start-up (spawn, LeRobot's import: seconds) is timed apart from the export, as in one
+    Start-up (the workers' start, LeRobot's import: seconds) is timed apart from the export, as in one
     process. On Ray at most 2 x the workers' shards are in flight (each holds its episodes' bytes).
     """
     ray = runner.backend == "ray"

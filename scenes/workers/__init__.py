@@ -4,8 +4,9 @@ Generation (teleop/generate) and parallel export (replay/export/shards.py) run t
 here, and the browser session takes `shielded` for saves a Ctrl-C must not cut in half. It
 imports only scenes.errors of ours, so it sits on the lowest floor every user can import.
 
-- runner.py: `Runner`, the one parallel runner (this process, spawned workers or Ray
-  tasks; results in submission order; stop or drain on Ctrl-C).
+- runner.py: `Runner`, the one parallel runner (this process, local workers forked from
+  a fork server that imported their modules once, or Ray tasks; results in submission
+  order; stop or drain on Ctrl-C), and `worker_context`, how those workers start.
 - worker.py: what a local worker does as it starts (watch the driver, take Ctrl-C
   from it only).
 - cluster.py: joining a Ray cluster (`connect_ray`), with one-line errors.
@@ -14,8 +15,8 @@ imports only scenes.errors of ours, so it sits on the lowest floor every user ca
 
 from scenes.workers.cluster import RAY_HINT, ClusterError, check_reachable, connect_ray
 from scenes.workers.interrupts import is_cancelled, shielded
-from scenes.workers.runner import Runner, WorkerLost
+from scenes.workers.runner import Runner, WorkerLost, worker_context
 from scenes.workers.worker import cancel_token
 
 __all__ = ["RAY_HINT", "ClusterError", "Runner", "WorkerLost", "cancel_token", "check_reachable", "connect_ray",
-           "is_cancelled", "shielded"]
+           "is_cancelled", "shielded", "worker_context"]

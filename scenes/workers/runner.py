@@ -1,4 +1,4 @@
-"""One way to run tasks in parallel: this process, spawned local workers, or Ray tasks.
+"""One way to run tasks in parallel: this process, local worker processes, or Ray tasks.
 
 Used by generation (batches of seeds) and parallel export (shards of episodes).
 Results are taken in submission order, whatever order tasks finish in, so a job
@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -33,11 +34,27 @@ from scenes.workers.interrupts import is_cancelled
 from scenes.errors import first_line
 
 POLL_S = 0.25  # how often a wait looks at the cancellation token and calls its poll (s)
+UNIX_SOCKET_PATH_MAX = 107  # bytes: the longest path an AF_UNIX socket may bind on Linux
 STOP_GRACE_S = 5.0  # how long a stopped worker has to exit on SIGTERM before it is killed (s)
 
 
 class WorkerLost(ClusterError):
     """A local worker process or a Ray worker/node died under a task (one line)."""
+
+
+def worker_context(preload: tuple[str, ...] = ()) -> multiprocessing.context.BaseContext:
+    """How local workers start: forked from multiprocessing's fork server, a fresh interpreter that imports
+    `preload` and nothing else. Nothing of the driver (a GL context, MuJoCo state, its threads) crosses a fork,
+    as with spawn, but the imports are paid once per job instead of once per worker (seconds each for LeRobot).
+    The server takes the preload list of the first job that starts it and lives as long as this process.
+    Its socket lives in the temporary folder; where that folder's path is too long for a socket's address
+    (a deep TMPDIR), the workers are spawned instead: each imports for itself."""
+    if len(os.path.join(tempfile.gettempdir(), "pymp-12345678", "listener-12345678")) > UNIX_SOCKET_PATH_MAX:
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    if preload:
+        ctx.set_forkserver_preload(list(preload))
+    return ctx
 
 
 class Runner:
@@ -50,12 +67,14 @@ class Runner:
     ray_options: for `ray.remote` (num_cpus is 1 unless given).
     cancel: the cancellation token `wait` watches.
     processes: local tasks run in worker processes even when there is one (else it is this process).
+    preload: modules (the tasks' own, and the heavy libraries they load) imported once by the server process
+    the local workers are forked from, so that N workers pay those imports once, not N times; not on Ray.
     """
 
     def __init__(self, workers: int = 1, ray: str | None = None, shared: Any = None,
                  setup: Callable[..., None] | None = None, setup_args: tuple = (),
                  ray_options: dict | None = None, cancel: threading.Event | None = None,
-                 processes: bool = False) -> None:
+                 processes: bool = False, preload: tuple[str, ...] = ()) -> None:
         self.cancel = cancel
         self.t_start = time.perf_counter()
         self.startup_s = 0.0
@@ -81,7 +100,7 @@ class Runner:
             self.workers = max(1, workers)
             self._shared = shared
             if self.workers > 1 or processes:
-                ctx = multiprocessing.get_context("spawn")  # a GL context or MuJoCo state never crosses a fork
+                ctx = worker_context(preload)
                 self._cancel_workers = ctx.Event()
                 self._pool = ProcessPoolExecutor(
                     self.workers, mp_context=ctx, initializer=worker.start,
@@ -91,7 +110,7 @@ class Runner:
     # -- start-up ------------------------------------------------------------
 
     def wait_started(self) -> float:
-        """Block until every local worker has started (spawn, imports, setup); the seconds since creation."""
+        """Block until every local worker has started (fork server, imports, setup); the seconds since creation."""
         if self._pool is not None:
             pending = set(self._ready)
             while pending:

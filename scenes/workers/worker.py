@@ -1,13 +1,13 @@
 """Inside a local worker process: never outlive the driver, take Ctrl-C from the driver only.
 
-A worker is spawned (never forked: a GL context or MuJoCo state does not survive a
-fork). As it starts it
+A worker is forked from multiprocessing's fork server (runner.worker_context), never
+from the driver: a GL context or MuJoCo state does not survive a fork. As it starts it
 - leaves the terminal's process group: a terminal's Ctrl-C goes to the driver,
   which decides what the workers do (stop now, or end their task early);
-- starts a daemon thread that every POLL_S checks its parent is still the driver
-  and exits the process at once when it is not (the driver died, even by SIGKILL:
-  the worker was handed to init). With the workers gone, multiprocessing's
-  resource tracker, whose pipe they held too, sees it close and exits as well;
+- starts a daemon thread that waits on the driver (a pidfd: the driver is not its
+  parent) and exits the process at once when the driver ends, even by SIGKILL. The
+  fork server sees the driver's end of its pipe close and exits too, and with them
+  gone multiprocessing's resource tracker, whose pipe they held, exits as well;
 - copies the driver's cancel request (a multiprocessing Event) into a
   threading.Event that the task hands to library code (`cancel_token()`).
 """
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -58,8 +59,9 @@ def start(parent: int, cancel: Any, shared: Any, setup: Callable[..., None] | No
 
 
 def _watch(parent: int, cancel: Any) -> None:
+    driver_ended = _driver_watch(parent)
     while True:
-        if os.getppid() != parent:
+        if driver_ended(POLL_S):
             os._exit(1)  # the driver is gone: nobody will take this worker's results
         if not _cancel.is_set():
             try:
@@ -67,7 +69,28 @@ def _watch(parent: int, cancel: Any) -> None:
                     _cancel.set()
             except (OSError, EOFError):
                 os._exit(1)
-        time.sleep(POLL_S)
+
+
+def _driver_watch(parent: int) -> Callable[[float], bool]:
+    """A wait of up to `timeout` s that says whether the process `parent` has ended: a pidfd on Linux
+    (readable once it exits, zombie or not), else a probe of the pid after the wait."""
+    try:
+        fd = os.pidfd_open(parent)
+    except ProcessLookupError:
+        return lambda timeout: True
+    except (AttributeError, OSError):  # no pidfd here (not Linux, or a kernel before 5.3)
+        def probe(timeout: float) -> bool:
+            time.sleep(timeout)
+            try:
+                os.kill(parent, 0)
+            except ProcessLookupError:
+                return True
+            except PermissionError:
+                pass
+            return False
+
+        return probe
+    return lambda timeout: bool(select.select([fd], [], [], timeout)[0])
 
 
 def call(fn: Callable[..., Any], args: tuple) -> Any:

@@ -122,7 +122,7 @@ class GenerateSummary:
     failures_kept: int = 0
     not_bit_exact: int = 0
     seconds: float = 0.0  # wall time in all
-    startup_s: float = 0.0  # of which starting the workers (spawn, imports) or joining Ray
+    startup_s: float = 0.0  # of which starting the workers (fork server, imports) or joining Ray
     seeds: list[int] = field(default_factory=list)  # seeds of the kept successes
     stopped_early: str = ""  # why fewer than asked were kept ("" when all were)
     interrupted: bool = False  # Ctrl-C: what was kept until then stays
@@ -360,12 +360,12 @@ def generate(sources: Iterable[str | Path], opts: GenerateOptions,
         runner = Runner(ray=opts.ray, shared=job, cancel=cancel)
     else:
         workers = opts.workers or os.cpu_count() or 1
-        runner = Runner(workers, shared=job, setup=_warm_up, setup_args=(job,), cancel=cancel)
+        runner = Runner(workers, shared=job, setup=_warm_up, setup_args=(job,), cancel=cancel, preload=(__name__,))
     summary.workers, summary.backend = runner.workers, runner.backend
     work = 0.0
     try:
         with runner:
-            summary.startup_s = runner.wait_started()  # spawn, imports, a first build (or joining Ray): not timed as work
+            summary.startup_s = runner.wait_started()  # workers' start, imports, a first build (or joining Ray): not timed as work
             # Small batches locally (progress and Ctrl-C stay prompt); larger on Ray, where a task costs more to send.
             batch = opts.batch or (max(1, min(8, opts.num // (2 * runner.workers))) if runner.backend == "ray" else 2)
             t0 = time.perf_counter()
