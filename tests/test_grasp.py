@@ -64,7 +64,7 @@ def test_every_lift_task_needs_a_grasp():
 
 @pytest.mark.e2e
 def test_a_gripper_closing_on_the_cube_edge_pushes_it_no_faster_than_a_hand():
-    """`teleop bench --only grasp --quick`: 8 scripted near misses a robot, the gripper closing on the cube's edge."""
+    """`teleop bench --only grasp --quick`: 4 scripted near misses a robot, the gripper closing on the cube's edge."""
     out = run_json("bench", "--only", "grasp", "--quick", "--json")
     per_robot = {k: v for k, v in out.items() if k.startswith("grasp_edge_max_speed_")}
     assert set(per_robot) == {f"grasp_edge_max_speed_{r}" for r in ("panda", "ur5e", "so101", "bimanual")}
