@@ -23,7 +23,8 @@ MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_ro
 UNITS = {"so101_leader": "degrees", "so100_leader": "degrees", "koch_leader": "range"}  # LeRobot's normalisation
 OPTION_KEYS = ("id", "calibration", "map", "scale", "arm")
 SPEC_HELP = "PORT[:id=NAME][:calibration=DIR][:map=FILE][:scale=F][:arm=K]"
-CONNECT_TRIES = 3  # a bus that times out while connecting (a busy machine, a glitch) is tried again this often
+CONNECT_TRIES = 3  # a bus that times out while connecting (a busy machine, a glitch) is tried again at least this often
+CONNECT_PATIENCE_S = 3.0  # and for at least this long from the first try (a loaded host misses replies for a while)
 INSTALL_HINT = "pip install 'mujoco-teleop[hardware]' (LeRobot with its Feetech and Dynamixel SDKs)"
 
 
@@ -152,22 +153,25 @@ def _motor_problem(bus, spec: LeaderSpec) -> tuple[str, bool]:
 def connect_leader(spec: LeaderSpec, tries: int = CONNECT_TRIES):
     """LeRobot's teleoperator for the spec, connected without calibrating and checked; LeaderError otherwise.
 
-    A failure to talk to the servos is tried again (`tries` in all): a status packet that came late
-    on a busy machine must not stop the command; a missing port or calibration is not.
+    A failure to talk to the servos is tried again (`tries` in all, and for CONNECT_PATIENCE_S when more than one
+    is allowed): a status packet that came late on a busy machine must not stop the command; a missing port or
+    calibration is not.
     """
     problem = port_problem(spec.port, "the leader")
     if problem:
         raise LeaderError(f"{spec.kind}: {problem}")
     if spec.calibration is not None and not spec.calibration.is_dir():
         raise LeaderError(f"{spec.kind}:{spec.port}: calibration={spec.calibration} is not a folder; {calibrate_command(spec)} writes one")
-    for attempt in range(tries):
+    give_up = time.monotonic() + (CONNECT_PATIENCE_S if tries > 1 else 0.0)
+    attempt = 0
+    while True:
+        attempt += 1
         try:
             return _connect_once(spec)
         except _BusTrouble as exc:
-            if attempt >= tries - 1:
+            if attempt >= tries and time.monotonic() >= give_up:
                 raise LeaderError(str(exc)) from None
             time.sleep(0.1)
-    raise AssertionError("unreachable")
 
 
 class _BusTrouble(Exception):

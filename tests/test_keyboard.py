@@ -125,7 +125,11 @@ def test_speed_up_key_scales_the_speed(kb, x_display):
 
     ticks, marks = run_loop(kb, script)
     assert kb.speed_scale == pytest.approx(1.5)
-    assert total(ticks, "translation")[0] == pytest.approx(1.5 * POS * (marks["up"] - marks["down"]), rel=0.2)
+    # The speed of each tick, not the distance over the wall-clock hold: a loaded machine delivers X's key events
+    # late, which shortens the hold the device sees (test_holding_w_moves... checks distance against time)
+    steps = [c.translation[0] for cmds in ticks for c in cmds if np.any(c.translation)]
+    assert max(steps) == pytest.approx(1.5 * POS * DT, rel=1e-6)
+    assert len(steps) >= 0.5 * (marks["up"] - marks["down"]) / DT
 
 
 def test_gripper_toggles_once_per_press(kb, x_display):
