@@ -187,7 +187,7 @@ def _connect_once(spec: LeaderSpec):
         problem, lasting = _motor_problem(leader.bus, spec) if leader.bus.is_connected else (f"{where}: {first_words(exc)}", False)
         drop_leader(leader)
         raise (LeaderError if lasting else _BusTrouble)(problem) from None
-    except (ConnectionError, OSError) as exc:
+    except (ConnectionError, OSError, IndexError) as exc:  # IndexError: the Feetech SDK on a short status packet
         drop_leader(leader)
         cause = exc.__cause__ or exc
         if isinstance(cause, PermissionError):

@@ -16,7 +16,6 @@ import sys
 import threading
 import time
 import tomllib
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import mujoco
@@ -383,11 +382,9 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             return run_cli("run", "--device", word, "--robot", robot, "--scene", "lift", "--seconds", "1",
                            "--record", str(tmp_path / f"rec{i}"), timeout=180)
 
-        ports = [word.split(":")[1] for word, _, _ in cases.values()]
-        assert len(set(ports)) == len(ports), ports  # two commands on one pseudo-terminal would garble each other's packets
-        with ThreadPoolExecutor(len(cases)) as pool:  # at once: each opens LeRobot's bus on its own emulator
-            futures = {name: pool.submit(run, i, word, robot) for i, (name, (word, robot, _)) in enumerate(cases.items())}
-            results = {name: future.result() for name, future in futures.items()}
+        # One after another: six commands talking to six emulators at once loaded the machine enough to make other
+        # tests' servo replies late
+        results = {name: run(i, word, robot) for i, (name, (word, robot, _)) in enumerate(cases.items())}
     for name, result in results.items():
         try:
             assert_one_line_error(result, *cases[name][2])
