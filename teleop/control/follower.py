@@ -39,6 +39,7 @@ STALL_S = 0.5  # failed sends for this long, none answered, and the follower is 
 PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
 PING_PATIENCE_S = 3.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
 # host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
+CALIBRATION_READS = 3  # reads of the servos' calibration registers that must all differ from the file to refuse it
 CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus, tried at least
 CONNECT_PATIENCE_S = 2.0  # this often and for this long (the servos answered our pings just before: a failure here
 # is a reply that came late, which a loaded host or USB adapter makes now and then, not a missing arm)
@@ -209,6 +210,11 @@ class Follower:
                                       f"{bus.motors[name].model.upper()} ({expected}): is this an SO-101 follower?")
             try:
                 calibrated = _patiently(lambda: robot.is_calibrated)
+                for _ in range(CALIBRATION_READS - 1):  # a mismatch is said only when every read finds it: a read
+                    if calibrated:  # garbled on a loaded host or bus differs once, a wrong calibration every time
+                        break
+                    time.sleep(0.05)
+                    calibrated = _patiently(lambda: robot.is_calibrated)
             except Exception as exc:  # noqa: BLE001 - it answered our pings, then stopped
                 raise DeviceError(f"{spec.port}: the follower's servos stopped answering while their calibration was "
                                   f"read ({first_line(exc)})") from None
