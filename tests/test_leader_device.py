@@ -358,12 +358,11 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
     """A missing port, no servo answering, a wrong servo model, no calibration file, a mismatched one, and a koch
     leader on the Panda: each stops `teleop run` with one line and exit 2 before anything is recorded."""
     with (FeetechEmulator.start(tmp_path / "ok", role="leader") as good,
-          FeetechEmulator.start(tmp_path / "ok2", role="leader") as good2,
           FeetechEmulator.start(tmp_path / "none", ids=[], role="leader") as empty,
           FeetechEmulator.start(tmp_path / "wrong", model=1284, role="leader") as wrong,
           DynamixelEmulator.start(tmp_path / "koch", role="leader") as koch):
         good.write_calibration_file(tmp_path / "cal", "arm")
-        good2.write_calibration_file(tmp_path / "bad", "arm", mismatch=True)
+        good.write_calibration_file(tmp_path / "bad", "arm", mismatch=True)
         wrong.write_calibration_file(tmp_path / "wcal", "arm")
         koch.write_calibration_file(tmp_path / "kcal", "koch")
         (tmp_path / "empty").mkdir()
@@ -375,7 +374,7 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             "no calibration": (f"so101_leader:{good.port}:id=arm:calibration={tmp_path / 'empty'}", "so101",
                                ["no calibration file", f"lerobot-calibrate --teleop.type=so101_leader --teleop.port={good.port} "
                                                        "--teleop.id=arm"]),
-            "mismatched calibration": (f"so101_leader:{good2.port}:id=arm:calibration={tmp_path / 'bad'}", "so101",
+            "mismatched calibration": (f"so101_leader:{good.port}:id=arm:calibration={tmp_path / 'bad'}", "so101",
                                        ["does not match", "lerobot-calibrate --teleop.type=so101_leader"]),
             "koch on the panda": (f"koch_leader:{koch.port}:id=koch:calibration={tmp_path / 'kcal'}", "panda",
                                   ["joint for joint only", "--robot so101"]),
@@ -384,8 +383,8 @@ def test_every_leader_fault_is_one_line_and_exit_2(tmp_path):
             return run_cli("run", "--device", word, "--robot", robot, "--scene", "lift", "--seconds", "1",
                            "--record", str(tmp_path / f"rec{i}"), timeout=180)
 
-        # One after another: six commands talking to six emulators at once loaded the machine enough to make other
-        # tests' servo replies late
+        # One after another (two of them share the good emulator's port; six at once also loaded the machine enough
+        # to make other tests' servo replies late)
         results = {name: run(i, word, robot) for i, (name, (word, robot, _)) in enumerate(cases.items())}
     for name, result in results.items():
         try:
