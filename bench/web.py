@@ -133,7 +133,7 @@ def browser_figures(quick: bool) -> dict[str, float]:
         work = Path(tmp)
         script = _sweep_script(work / "sweep.json", 2 * window + 60)
         with sync_playwright() as p:
-            browser = headless.launch(p)
+            browser = headless.launch(p, msaa=True)  # as a user's browser draws
             try:
                 # The default session (30 Hz) recording an episode and streaming to one browser.
                 server = headless.ServeProcess(["--device", f"gizmo,script:{script}", "--record", str(work / "eps")], work)
@@ -248,7 +248,7 @@ def key_latency(presses: int, hide_3d: bool = False) -> dict[str, float]:
     app.start()
     try:
         with sync_playwright() as p:
-            browser = headless.launch(p)
+            browser = headless.launch(p, msaa=True)  # as a user's browser draws
             try:
                 page = browser.new_page(viewport={"width": 1280, "height": 800})
                 page.add_init_script(FIRST_UPDATE)

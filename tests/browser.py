@@ -37,6 +37,12 @@ CHROMIUM_ARGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
     "--disable-component-update", "--disable-sync", "--no-first-run",
 )
+# The tests' Chromium draws WebGL without multisampling (a user's browser keeps it, and so does the bench's, so
+# that its figures are what a user gets). Without a GPU, SwiftShader draws every frame of the page, and 4x MSAA
+# doubled its cost: an idle session page (viser's 1 s heartbeat frame, half resolution) took 0.28 CPU s a frame
+# with it and 0.15 without, measured in headless Chromium at 1280x800 on the 2-core machine. A page's edges
+# are jagged; nothing a test checks is in them.
+NO_MSAA_ARGS = ("--webgl-msaa-sample-count=0",)
 
 COUNT_FRAMES = r"""
 (() => {
@@ -77,13 +83,14 @@ def chromium_path() -> str | None:
     return None
 
 
-def launch(playwright):
-    """A headless system Chromium (raises FileNotFoundError when there is none)."""
+def launch(playwright, msaa: bool = False):
+    """A headless system Chromium (raises FileNotFoundError when there is none); `msaa`: WebGL antialiased as
+    in a user's browser (the bench), else without multisampling (the tests: NO_MSAA_ARGS)."""
     path = chromium_path()
     if path is None:
         raise FileNotFoundError("no Chromium found: the browser tests drive the page in headless Chromium; install it "
                                 "(Debian: apt-get install chromium) or set TELEOP_CHROMIUM to its path")
-    return playwright.chromium.launch(executable_path=path, args=list(CHROMIUM_ARGS))
+    return playwright.chromium.launch(executable_path=path, args=[*CHROMIUM_ARGS, *(() if msaa else NO_MSAA_ARGS)])
 
 
 def open_page(browser, url: str, count_frames: bool = False, size=(1280, 800), timeout_s: float = 60.0):

@@ -49,6 +49,7 @@ def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
     port = headless.free_port()
     log = open(tmp_path / "replay.log", "w")
     proc = popen_cli(["replay", str(episode), "--serve", "--port", str(port)], log)
+    stopped = False
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and "open http" not in (tmp_path / "replay.log").read_text():
@@ -64,6 +65,13 @@ def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
 
             page.get_by_text(episode.name).first.wait_for(timeout=60_000)
             assert page.get_by_text("Step").count() >= 1
+            # headless Chromium draws WebGL in software: the viewer gives it the session's lighter view
+            # (half resolution, asked for before viser starts; no shadows or environment light, from the server)
+            assert "fixedDpr=0.5" in page.url, page.url
+            lighter = time.monotonic() + 60
+            while "draws WebGL without a GPU" not in (tmp_path / "replay.log").read_text():
+                assert time.monotonic() < lighter, (tmp_path / "replay.log").read_text()
+                time.sleep(0.2)
             assert shown_time() == 0.0
             # a quarter of real time: the server plays on while a loaded machine's page lags it, and the test must
             # pause well before the end (170 s away at 0.25x), whatever the page showed when it clicked
@@ -93,9 +101,15 @@ def test_replay_in_the_browser_plays_and_scrubs(episode, tmp_path):
             box.press("Enter")
             page.wait_for_function("() => [...document.querySelectorAll('*')].some(e => e.textContent.trim().startsWith('t = 0.33'))",
                                    timeout=60_000)
+            # the viewer stopped: its page says so across the top, as the session's does
+            proc.send_signal(signal.SIGINT)
+            stopped = True
+            page.wait_for_function("() => document.getElementById('teleop-disconnected') !== null", timeout=60_000)
+            assert page.locator("#teleop-disconnected").is_visible()
             browser.close()
     finally:
-        proc.send_signal(signal.SIGINT)
+        if not stopped:
+            proc.send_signal(signal.SIGINT)
         code = proc.wait(20)
         log.close()
     assert code == 0, (tmp_path / "replay.log").read_text()

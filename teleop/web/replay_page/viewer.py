@@ -11,7 +11,12 @@ The viewer serves behind the session's gate (teleop.web.shared.access): a token 
 loopback, HTTP 403 and refused websockets without it, the per-port cookie and
 the Origin check. Its page can write the subtask file, and it does so only from
 a panel event, which arrives over viser's websocket and so past that gate.
-Camera and markers are the live session's (teleop.web.session_page.drawing).
+Camera and markers are the live session's (teleop.web.session_page.drawing), and
+so is the lighter view for a browser drawing WebGL in software
+(teleop.web.session_page.view_quality): without it such a page draws viser's
+shadows and environment light without pause, ~0.8 s a frame, and a click on
+the timeline waits behind it. The page learns that, and gets the banner when
+the server is gone, from the session's input script run with no keys bound.
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ from replay.episode import Episode, EpisodeError
 from teleop.errors import UsageError
 from teleop.web.shared.access import Gate, announce, resolve_token, start_guarded
 from teleop.web.session_page.drawing import Markers, place_camera
+from teleop.web.session_page.input_channel import PATH as INPUT_PATH
+from teleop.web.session_page.input_channel import InputChannel
+from teleop.web.session_page.page_keyboard import channel_script
+from teleop.web.session_page.view_quality import SoftwareViews, ViewReports, head_script
+from teleop.web.viser_internals.page_script import run_javascript
 from teleop.web.shared.net import check_port_free
 from teleop.web.replay_page.subtasks import SubtaskPanel
 
@@ -157,9 +167,16 @@ def serve_episode(episode: Episode, host: str = "127.0.0.1", port: int = 8080, t
     log = log or (lambda line: print(line, flush=True))
     token = resolve_token(host, token, no_token)
     check_port_free(host, port)
+    channel = InputChannel()  # the page's report of how it draws; it binds no keys
     server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop replay", verbose=False),
-                           lambda started: started.stop(), Gate.for_server(host, port, token), routes={})
+                           lambda started: started.stop(), Gate.for_server(host, port, token),
+                           routes={INPUT_PATH: channel.handle}, head=head_script())
     try:
+        views = SoftwareViews(server)
+        channel.listener = ViewReports(views, log)
+        # viser has no public call to run a script in a page (teleop.web.viser_internals.page_script)
+        server.on_client_connect(lambda client: run_javascript(client, channel_script(client.client_id, keys=[])))
+        server.on_client_disconnect(lambda client: views.forget(client.client_id))
         if server.get_port() != port:  # someone took it between our check and viser's bind
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
         server.gui.configure_theme(show_logo=False, show_share_button=False)

@@ -42,7 +42,7 @@ from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys, 
 from teleop.web.session_page.panel import Panel, PanelDevice
 from teleop.web.session_page.sim_thread import SimThread, Snapshot
 from teleop.web.session_page.serve_options import STATUS_PERIOD_S, ServeOptions  # noqa: F401 - STATUS_PERIOD_S also read from here
-from teleop.web.session_page.view_quality import head_script, simplify
+from teleop.web.session_page.view_quality import SoftwareViews, head_script
 from teleop.web.viser_internals.page_script import run_javascript
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
@@ -105,8 +105,6 @@ class WebApp:
             self.page_keys = PageKeys(keyboard)
         # Gamepads, the phone page and WebHID SpaceMice: devices fed by pages over the same channel.
         self.page_inputs = PageInputs(self.page_keys, self.devices)
-        self.page_inputs.on_view = self._view_reported
-        self.software_views: set[int] = set()  # viser clients drawing in software, given the cheap view
         self.input.listener = self.page_inputs  # every page talks: at least to say how it draws
         pages = {PHONE_PATH: PageInputs.phone_page()} if self.page_inputs.phone is not None else {}
         self.has_phone_page = bool(pages)
@@ -115,6 +113,8 @@ class WebApp:
         self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
                                     lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages,
                                     head=head_script())
+        self.software_views = SoftwareViews(self.server)  # viser clients drawing in software, given the cheap view
+        self.page_inputs.on_view = self.software_views.reported
         if port == 0:
             self.port = port = self.gate.port = self.server.get_port()
         if self.server.get_port() != port:  # someone took it between our check and viser's bind
@@ -204,16 +204,8 @@ class WebApp:
     def _client_disconnected(self, client: viser.ClientHandle) -> None:
         if self.page_keys is not None:
             self.page_keys.release_client(client.client_id)
-        self.software_views.discard(client.client_id)
+        self.software_views.forget(client.client_id)
         self._clients_changed()
-
-    def _view_reported(self, client_id: int, software_gl: bool) -> None:
-        """A page said how it draws WebGL (network thread): a CPU gets a view it can draw quickly."""
-        client = self.server.get_clients().get(client_id)
-        if client is None or not software_gl or client_id in self.software_views:
-            return
-        self.software_views.add(client_id)
-        simplify(client)
 
     def _clients_changed(self) -> None:
         count = len(self.server.get_clients())

@@ -24,15 +24,22 @@ Two changes, for such a browser only:
   directional light from behind the initial camera in its place, so that the
   faces the camera sees are lit.
 Browsers with a GPU keep viser's look at full resolution.
+
+Both 3D pages do this: the live session and the replay viewer (`teleop replay
+--serve`), whose page runs the input channel's script only for its `view`
+report and its lost-server banner (`ViewReports`).
 """
 
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable
 
 import viser
 
 from teleop.web.session_page.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
+from teleop.web.session_page.input_messages import InputMessage, View
 from teleop.web.viser_internals.page_script import FIXED_DPR_PARAM
 
 LIGHT_NAME = "/teleop/software_view_light"
@@ -79,3 +86,59 @@ def simplify(client: viser.ClientHandle) -> None:
     # put it at the camera, offset so that it points from the camera at what the camera looks at.
     position = tuple(p - t for p, t in zip(CAMERA_POSITION, CAMERA_LOOK_AT))
     scene.add_light_directional(LIGHT_NAME, intensity=LIGHT_INTENSITY, position=position, cast_shadow=False)
+
+
+class SoftwareViews:
+    """The clients of one viser server that draw in software, each given the cheap view once (thread-safe)."""
+
+    def __init__(self, server: viser.ViserServer) -> None:
+        self.server = server
+        self._clients: set[int] = set()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._clients)
+
+    def reported(self, client_id: int, software_gl: bool) -> bool:
+        """A page said how it draws (network thread); a page drawing on a CPU gets `simplify`. True if it did now."""
+        client = self.server.get_clients().get(client_id)
+        if client is None or not software_gl:
+            return False
+        with self._lock:
+            if client_id in self._clients:
+                return False
+            self._clients.add(client_id)
+        simplify(client)
+        return True
+
+    def forget(self, client_id: int) -> None:
+        """The client left (its id is never reused by viser; this keeps the count right)."""
+        with self._lock:
+            self._clients.discard(client_id)
+
+
+class ViewReports:
+    """The input channel's listener on a page that only reports how it draws (the replay viewer)."""
+
+    def __init__(self, views: SoftwareViews, log: Callable[[str], None] | None = None) -> None:
+        self.views = views
+        self.log = log  # told when a page gets the lighter view
+        self.unused = 0  # valid messages this page has no use for (keys: the viewer binds none)
+
+    def opened(self, conn: int, remote: str) -> None:
+        pass
+
+    def received(self, conn: int, message: InputMessage) -> None:
+        if isinstance(message, View) and message.client is not None:
+            if self.views.reported(message.client, message.software_gl) and self.log is not None:
+                self.log(f"a browser draws WebGL without a GPU: its view is drawn at {SOFTWARE_DPR:g}x resolution, "
+                         "without shadows or the environment light")
+        elif not isinstance(message, View):
+            self.unused += 1
+
+    def quiet(self, conn: int) -> None:
+        pass
+
+    def closed(self, conn: int) -> None:
+        pass
