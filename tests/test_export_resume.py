@@ -13,8 +13,6 @@ import os
 import random
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -23,7 +21,7 @@ import pytest
 
 import teleop
 from replay.export.pieces import journal_dir
-from tests.support import run_cli
+from tests.support import popen_cli, run_cli
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,12 +59,15 @@ def whole_frames(whole) -> tuple[dict, list[dict]]:
     return _frames(whole)
 
 
-def _export(src: Path, out: Path, *extra: str, wait: bool = True):
-    cmd = [sys.executable, "-m", "teleop", "export", str(src), "--out", str(out), *EXPORT, *extra]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    if not wait:
-        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    return run_cli(*cmd[3:], env={"HF_HUB_OFFLINE": "1"}, timeout=600)
+def _export(src: Path, out: Path, *extra: str):
+    return run_cli("export", str(src), "--out", str(out), *EXPORT, *extra, env={"HF_HUB_OFFLINE": "1"}, timeout=600)
+
+
+def _start_export(src: Path, out: Path, log: Path, *extra: str):
+    """`teleop export` started in its own process (as run_cli: forked from the warm process when it may be), its
+    output in `log`; a Popen, or what the tests use of one (pid, poll, wait)."""
+    with open(log, "w") as stream:
+        return popen_cli(["export", str(src), "--out", str(out), *EXPORT, *extra], stream, env={"HF_HUB_OFFLINE": "1"})
 
 
 def _frames(root: Path) -> tuple[dict, list[dict]]:
@@ -81,21 +82,19 @@ def _frames(root: Path) -> tuple[dict, list[dict]]:
 
 
 def test_a_killed_export_resumes_into_the_uninterrupted_dataset(episodes, whole, whole_frames, tmp_path):
-    out = tmp_path / "killed"
-    proc = _export(episodes, out, wait=False)
+    out, log = tmp_path / "killed", tmp_path / "export.log"
+    proc = _start_export(episodes, out, log)
     manifest = journal_dir(out) / "manifest.json"
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:
         if manifest.is_file() and json.loads(manifest.read_text())["done"] >= 2:
             break
         time.sleep(0.05)
-    assert proc.poll() is None, "the export ended before it could be killed: " + proc.stderr.read()[-2000:]
+    assert proc.poll() is None, "the export ended before it could be killed: " + log.read_text()[-2000:]
     time.sleep(random.uniform(0.0, 0.4))  # somewhere in the next piece (or between pieces)
     assert proc.poll() is None, "the export ended before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    proc.stdout.close()
-    proc.stderr.close()
+    assert proc.wait(timeout=30) == -signal.SIGKILL
     done = json.loads(manifest.read_text())["done"]
     assert 2 <= done < 7
 
@@ -144,8 +143,8 @@ def test_a_killed_parallel_export_resumes_into_the_uninterrupted_dataset(episode
     serial one: a parallel export equals it, test_export_parallel.py, its statistics merged from the shards')."""
     from replay.export.shards import parts_dir
 
-    out = tmp_path / "killed"
-    proc = _export(episodes, out, "--workers", "2", wait=False)
+    out, log = tmp_path / "killed", tmp_path / "export.log"
+    proc = _start_export(episodes, out, log, "--workers", "2")
     parts = parts_dir(out)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:  # a shard has a whole piece
@@ -153,11 +152,9 @@ def test_a_killed_parallel_export_resumes_into_the_uninterrupted_dataset(episode
                if m.stat().st_size):
             break
         time.sleep(0.05)
-    assert proc.poll() is None, "the export ended before it could be killed: " + proc.stderr.read()[-2000:]
+    assert proc.poll() is None, "the export ended before it could be killed: " + log.read_text()[-2000:]
     os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    proc.stdout.close()
-    proc.stderr.close()
+    assert proc.wait(timeout=30) == -signal.SIGKILL
     time.sleep(1.0)  # the workers see their parent gone and exit
     assert (parts / "plan.json").is_file()
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import getpass
 import signal
 import subprocess
-import sys
 import urllib.request
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from teleop.control.loop import run_episode
 from teleop.control.recording import Recorder
 from teleop.control.session import Session
 from tests import browser as headless
-from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, wait_until
+from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, popen_cli, wait_until
 
 STYLESHEET = ROOT / "teleop" / "web" / "shared" / "static" / "teleop.css"
 CAMPAIGN = 'name = "trial"\nout = "data"\nmax_sessions = 2\n[[task]]\nscene = "lift"\nepisodes = 5\n'
@@ -58,8 +57,7 @@ class Server:
 
     def start(self) -> None:
         self.log = open(self.log_path, "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "teleop", *self.args, "--port", str(self.port)], cwd=ROOT,
-                                     stdout=self.log, stderr=subprocess.STDOUT)
+        self.proc = popen_cli([*self.args, "--port", str(self.port)], self.log, cwd=ROOT)
         wait_until(lambda: self.proc.poll() is not None or self.ready(self), 120, f"teleop {self.args[0]} to answer")
         assert self.proc.poll() is None, self.log_path.read_text()
 

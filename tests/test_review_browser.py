@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import getpass
 import json
-import subprocess
-import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -19,7 +17,7 @@ import pytest
 
 from replay.review.verdicts import read_verdict
 from tests import browser as headless
-from tests.support import ROOT, run_cli, run_json
+from tests.support import ROOT, popen_cli, run_cli, run_json
 
 
 @pytest.fixture(scope="module")
@@ -30,10 +28,9 @@ def folder(tmp_path_factory) -> Path:
     return work / "eps"
 
 
-def start_review(folder: Path, port: int, log_path: Path) -> subprocess.Popen:
+def start_review(folder: Path, port: int, log_path: Path):
     log = open(log_path, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "teleop", "review", str(folder), "--port", str(port)],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    proc = popen_cli(["review", str(folder), "--port", str(port)], log, cwd=ROOT)
     deadline = time.monotonic() + 120
     while "open http" not in log_path.read_text():
         assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import subprocess
-import sys
 
 import pytest
 
@@ -17,7 +15,7 @@ from teleop.errors import UsageError
 from teleop.web.session_page.serve_options import ServeOptions, asks_for_keyboard
 from teleop.web.shared.access import resolve_token
 from tests import browser as headless
-from tests.support import ROOT
+from tests.support import run_cli
 
 
 def cli_options(*flags: str) -> ServeOptions:
@@ -108,8 +106,7 @@ def test_the_scripting_serve_checks_before_it_serves():
 
 @pytest.mark.e2e  # a fresh `teleop` process
 def test_a_bad_speed_is_one_line_and_exit_2():
-    result = subprocess.run([sys.executable, "-m", "teleop", "serve", "--port", str(headless.free_port()), "--rot-speed", "0"],
-                            cwd=ROOT, capture_output=True, text=True, timeout=120)
+    result = run_cli("serve", "--port", str(headless.free_port()), "--rot-speed", "0", timeout=120)
     assert result.returncode == 2, result.stderr
     assert "--rot-speed" in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1

@@ -16,7 +16,6 @@ import re
 import socket
 import stat
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -32,7 +31,7 @@ from teleop.web.shared.access import THROTTLE_BLOCK_S, Gate, local_host_header
 from teleop.web.review_page.server import ReviewFolder, make_handler
 from teleop.web.shared.stdlib_http import READ_TIMEOUT_S, QuietServer
 from tests import browser as headless
-from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, CampaignProcess, campaign_session_status, run_cli, wait_until
+from tests.support import CAMPAIGN_ADMIN, CAMPAIGN_JOIN, ROOT, CampaignProcess, campaign_session_status, popen_cli, run_cli, wait_until
 
 ADMIN, JOIN = "admin-token-1234", "join-token-5678"
 SCRIPT = {"steps": [{"duration": 0.4, "to_body": "cube", "offset": [0, 0, 0.1], "gripper": "open"},
@@ -121,8 +120,7 @@ class Server:
         self.port = headless.free_port()
         self.log_file = workdir / f"server-{self.port}.log"
         self._log = open(self.log_file, "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "teleop", *args, "--port", str(self.port)], cwd=ROOT,
-                                     stdout=self._log, stderr=subprocess.STDOUT)
+        self.proc = popen_cli([*args, "--port", str(self.port)], self._log, cwd=ROOT)
         wait_until(lambda: "open http" in self.log() or self.proc.poll() is not None, 180, "the server's URL")
         assert self.proc.poll() is None, self.log()
 

@@ -10,11 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import re
 import signal
 import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -28,7 +26,7 @@ from websockets.exceptions import InvalidStatus
 from teleop.web.shared.access import TOKEN_ENV, TOKEN_PATTERN
 from teleop.web.shared.net import exposure_warning, page_url, remote_hint
 from tests import browser as headless
-from tests.support import ROOT, assert_one_line_error, run_cli
+from tests.support import ROOT, assert_one_line_error, popen_cli, run_cli
 
 VISER_PROTOCOL = f"viser-v{viser.__version__}"
 SCRIPT = {"steps": [
@@ -89,9 +87,8 @@ class Viewer:
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_file = workdir / f"replay-{self.port}.log"
         self._log = open(self.log_file, "w")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "teleop", "replay", str(episode), "--serve", "--port", str(self.port), *args],
-            cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+        self.proc = popen_cli(["replay", str(episode), "--serve", "--port", str(self.port), *args], self._log,
+                              env=env, cwd=ROOT)
         deadline = time.monotonic() + 90
         while "open http" not in self.log():
             assert self.proc.poll() is None and time.monotonic() < deadline, self.log()
