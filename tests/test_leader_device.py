@@ -13,6 +13,7 @@ import math
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import tomllib
@@ -31,6 +32,7 @@ from devices.retarget import Retarget, to_base, to_world
 from replay.episode import load_episode
 from tests.servo_emulator import MOTOR_NAMES, DynamixelEmulator, FeetechEmulator, from_lerobot
 from tests.support import ROOT, assert_one_line_error, run_cli, run_json, wait_until
+from tests.warm_cli import WARM, with_project_path
 
 ARM_JOINTS = MOTOR_NAMES[:5]  # shoulder_pan .. wrist_roll: LeRobot's motor names and the sim so101's joints
 WALL_MINUS_MONOTONIC = time.time() - time.monotonic()  # s: recorded wall_time -> the emulators' clock
@@ -60,19 +62,28 @@ def so_pose(emulator, **radians: float) -> dict[int, int]:
 
 
 class LiveRun:
-    """`teleop run ARGS` in a fresh process whose stderr lines the test watches as they come (time.monotonic())."""
+    """`teleop run ARGS` in a fresh process whose stderr lines the test watches as they come (time.monotonic()):
+    forked from the warm process when it may be (tests/warm_cli.py), its stderr a pipe read here, its stdout a file."""
 
     def __init__(self, *args: str) -> None:
-        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-        self.proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", *args], cwd=ROOT, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env = with_project_path(dict(os.environ))
+        self._out = tempfile.TemporaryFile()
+        read_end, write_end = os.pipe()
+        if WARM.usable_for(env):
+            self.proc = WARM.popen(["run", *args], env, ROOT, self._out.fileno(), write_end)
+        else:
+            self.proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", *args], cwd=ROOT, env=env,
+                                         stdout=self._out, stderr=write_end)
+        os.close(write_end)  # the command holds the only write end: its exit ends the reader
+        self._stderr = os.fdopen(read_end, "r", errors="replace")
         self.lines: list[tuple[float, str]] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
-        for line in self.proc.stderr:
-            self.lines.append((time.monotonic(), line.rstrip("\n")))
+        with self._stderr:
+            for line in self._stderr:
+                self.lines.append((time.monotonic(), line.rstrip("\n")))
 
     def wait_line(self, text: str, count: int = 1, timeout_s: float = 60.0) -> float:
         """time.monotonic() when the `count`-th stderr line containing `text` arrived."""
@@ -86,10 +97,11 @@ class LiveRun:
         raise AssertionError(f"no {count} stderr line(s) with {text!r} within {timeout_s} s: {self.stderr()}")
 
     def finish(self, timeout_s: float = 120.0) -> dict:
-        out, _ = self.proc.communicate(timeout=timeout_s)
+        self.proc.wait(timeout_s)
         self._reader.join(5)
         assert self.proc.returncode == 0, f"exit {self.proc.returncode}: {self.stderr()}"
-        return json.loads(out)
+        self._out.seek(0)
+        return json.loads(self._out.read())
 
     def stderr(self) -> str:
         return "\n".join(line for _, line in self.lines)[-3000:]
