@@ -45,23 +45,26 @@ PICK = ROOT / "scenes" / "scripts" / "lift_pick.json"  # the scripted lift pick,
 def run_cli(*args: str, timeout: float = 300, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """`teleop ARGS...` in a fresh process, as a user would run it: forked from this worker's warm process
     (tests/warm_cli.py: the third-party imports already done) unless the environment asks for a real interpreter."""
-    full_env = with_project_path({**os.environ, **(env or {})})
-    if WARM.usable_for(full_env):
-        return WARM.run(list(args), full_env, cwd or ROOT, timeout)
-    return subprocess.run(
-        [sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout, env=full_env, cwd=cwd or ROOT
-    )
+    return run_teleop(list(args), with_project_path({**os.environ, **(env or {})}), cwd or ROOT, timeout)
 
 
-def popen_cli(args: list[str], stdout, env: dict | None = None, cwd: Path | None = None):
+def run_teleop(args: list[str], env: dict[str, str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
+    """As run_cli, with exactly the environment `env` (a test that takes variables away, such as DISPLAY)."""
+    if WARM.usable_for(env):
+        return WARM.run(list(args), env, cwd, timeout)
+    return subprocess.run([sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout,
+                          env=env, cwd=cwd)
+
+
+def popen_cli(args: list[str], stdout, env: dict | None = None, cwd: Path | None = None, stderr: int | None = None):
     """`teleop ARGS...` started in a fresh process (as run_cli: forked from the warm process when it may be),
-    stdout and stderr to the file `stdout`: a subprocess.Popen, or what the tests use of one (pid, poll, wait,
-    send_signal, terminate, kill, returncode)."""
+    stdout to the file `stdout` and stderr with it, or to the file descriptor `stderr` (a pipe the test reads):
+    a subprocess.Popen, or what the tests use of one (pid, poll, wait, send_signal, terminate, kill, returncode)."""
     full_env = with_project_path({**os.environ, **(env or {})})
     if WARM.usable_for(full_env):
-        return WARM.popen(list(args), full_env, cwd or ROOT, stdout.fileno(), stdout.fileno())
-    return subprocess.Popen([sys.executable, "-m", "teleop", *args], stdout=stdout, stderr=subprocess.STDOUT,
-                            env=full_env, cwd=cwd or ROOT)
+        return WARM.popen(list(args), full_env, cwd or ROOT, stdout.fileno(), stdout.fileno() if stderr is None else stderr)
+    return subprocess.Popen([sys.executable, "-m", "teleop", *args], stdout=stdout,
+                            stderr=subprocess.STDOUT if stderr is None else stderr, env=full_env, cwd=cwd or ROOT)
 
 
 def run_script(argv: list[str], env: dict, cwd: Path, timeout: float, ignore=()) -> subprocess.CompletedProcess:

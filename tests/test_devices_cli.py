@@ -13,20 +13,15 @@ import pytest
 
 from devices.base import DeviceError
 from devices.registry import DeviceOptions, open_devices
-from tests.support import ROOT, assert_one_line_error, write_script, xdotool
-from tests.warm_cli import WARM
+from tests.support import ROOT, assert_one_line_error, run_teleop, write_script, xdotool
 
 POS = 0.2
 
 
 def teleop(*args: str, display: str | None, timeout: float = 120) -> subprocess.CompletedProcess:
-    """`teleop ARGS` in a fresh process with DISPLAY set to `display` (None: no display at all): forked from the
-    warm process when it may be (tests/warm_cli.py: DISPLAY is read when used; pynput and the X libraries are not
-    among its imports), else a new interpreter."""
-    env = env_for(display)
-    if WARM.usable_for(env):
-        return WARM.run(list(args), env, ROOT, timeout)
-    return subprocess.run([sys.executable, "-m", "teleop", *args], capture_output=True, text=True, timeout=timeout, env=env, cwd=ROOT)
+    """`teleop ARGS` in a fresh process with DISPLAY set to `display` (None: no display at all); forked from the
+    warm process when it may be (DISPLAY is read when used; pynput and the X libraries are not among its imports)."""
+    return run_teleop(list(args), env_for(display), ROOT, timeout)
 
 
 def env_for(display: str | None) -> dict:

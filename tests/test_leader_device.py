@@ -12,7 +12,6 @@ import json
 import math
 import os
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -31,8 +30,7 @@ from devices.registry import KNOWN_DEVICES, DeviceOptions, open_devices
 from devices.retarget import Retarget, to_base, to_world
 from replay.episode import load_episode
 from tests.servo_emulator import MOTOR_NAMES, DynamixelEmulator, FeetechEmulator, from_lerobot
-from tests.support import ROOT, assert_one_line_error, run_cli, run_json, wait_until
-from tests.warm_cli import WARM, with_project_path
+from tests.support import ROOT, assert_one_line_error, popen_cli, run_cli, run_json, wait_until
 
 ARM_JOINTS = MOTOR_NAMES[:5]  # shoulder_pan .. wrist_roll: LeRobot's motor names and the sim so101's joints
 WALL_MINUS_MONOTONIC = time.time() - time.monotonic()  # s: recorded wall_time -> the emulators' clock
@@ -66,14 +64,9 @@ class LiveRun:
     forked from the warm process when it may be (tests/warm_cli.py), its stderr a pipe read here, its stdout a file."""
 
     def __init__(self, *args: str) -> None:
-        env = with_project_path(dict(os.environ))
         self._out = tempfile.TemporaryFile()
         read_end, write_end = os.pipe()
-        if WARM.usable_for(env):
-            self.proc = WARM.popen(["run", *args], env, ROOT, self._out.fileno(), write_end)
-        else:
-            self.proc = subprocess.Popen([sys.executable, "-m", "teleop", "run", *args], cwd=ROOT, env=env,
-                                         stdout=self._out, stderr=write_end)
+        self.proc = popen_cli(["run", *args], self._out, cwd=ROOT, stderr=write_end)
         os.close(write_end)  # the command holds the only write end: its exit ends the reader
         self._stderr = os.fdopen(read_end, "r", errors="replace")
         self.lines: list[tuple[float, str]] = []

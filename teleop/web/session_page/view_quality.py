@@ -124,18 +124,17 @@ class ViewReports:
     def __init__(self, views: SoftwareViews, log: Callable[[str], None] | None = None) -> None:
         self.views = views
         self.log = log  # told when a page gets the lighter view
-        self.unused = 0  # valid messages this page has no use for (keys: the viewer binds none)
 
     def opened(self, conn: int, remote: str) -> None:
         pass
 
     def received(self, conn: int, message: InputMessage) -> None:
-        if isinstance(message, View) and message.client is not None:
-            if self.views.reported(message.client, message.software_gl) and self.log is not None:
-                self.log(f"a browser draws WebGL without a GPU: its view is drawn at {SOFTWARE_DPR:g}x resolution, "
-                         "without shadows or the environment light")
-        elif not isinstance(message, View):
-            self.unused += 1
+        """Only `view` counts here; the rest (hello, a blur's release) has nothing to act on."""
+        if not isinstance(message, View) or message.client is None:
+            return
+        if self.views.reported(message.client, message.software_gl) and self.log is not None:
+            self.log(f"a browser draws WebGL without a GPU: its view is drawn at {SOFTWARE_DPR:g}x resolution, "
+                     "without shadows or the environment light")
 
     def quiet(self, conn: int) -> None:
         pass
