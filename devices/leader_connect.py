@@ -1,30 +1,33 @@
 """A leader arm's `--device` word and its connection through LeRobot's own teleoperator classes.
 
 `so101_leader:PORT[:id=NAME][:calibration=DIR][:map=FILE][:scale=F][:arm=K]` (and `so100_leader`,
-`koch_leader`) becomes a LeaderSpec; `connect_leader` opens it with LeRobot's `connect(calibrate=False)`
-(LeRobot's own `calibrate()` waits on stdin) and checks the port, the servos and the calibration first, so
-that every fault is one line (LeaderError) before anything runs. LeRobot and its servo SDKs are imported only
+`koch_leader`) becomes a LeaderSpec; `connect_leader` checks the port, the servos and the calibration, then
+opens it with LeRobot's `connect(calibrate=False)` (LeRobot's own `calibrate()` waits on stdin), the way a
+follower is connected too (devices/lerobot_connect.py), so that every fault is one line (LeaderError) before
+anything runs. LeRobot and its servo SDKs are imported only
 here, when a leader starts (the `hardware` extra). The device that reads it is devices.lerobot_leader.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from devices.base import DeviceError
 from devices.serial_ports import port_problem
+from scenes.errors import first_line
 from scenes.numbers import number_or_nan
+
+if TYPE_CHECKING:  # annotations only: devices.lerobot_connect loads when a leader connects
+    from devices.lerobot_connect import ArmWords
 
 LEADER_TYPES = ("so101_leader", "so100_leader", "koch_leader")
 MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")  # LeRobot's names, ids 1-6
 UNITS = {"so101_leader": "degrees", "so100_leader": "degrees", "koch_leader": "range"}  # LeRobot's normalisation
 OPTION_KEYS = ("id", "calibration", "map", "scale", "arm")
 SPEC_HELP = "PORT[:id=NAME][:calibration=DIR][:map=FILE][:scale=F][:arm=K]"
-CONNECT_TRIES = 3  # a bus that times out while connecting (a busy machine, a glitch) is tried again at least this often
-CONNECT_PATIENCE_S = 3.0  # and for at least this long from the first try (a loaded host misses replies for a while)
 INSTALL_HINT = "pip install 'mujoco-teleop[hardware]' (LeRobot with its Feetech and Dynamixel SDKs)"
 
 
@@ -120,103 +123,42 @@ def _lerobot_teleoperator(spec: LeaderSpec):
         return make(config)
     except Exception as exc:  # noqa: BLE001 - a calibration file LeRobot cannot parse: draccus raises many kinds
         raise LeaderError(
-            f"{spec.kind}:{spec.port}: cannot read the calibration file ({type(exc).__name__}: {first_words(exc)}); "
+            f"{spec.kind}:{spec.port}: cannot read the calibration file ({type(exc).__name__}: {first_line(exc)}); "
             f"calibrate again: {calibrate_command(spec)}"
         ) from None
 
 
-def _motor_problem(bus, spec: LeaderSpec) -> tuple[str, bool]:
-    """What LeRobot's motor check found, in one line (servos that did not answer, or of the wrong model), and
-    whether trying again cannot help (a wrong model)."""
-    missing, wrong = [], []
-    for name, motor in bus.motors.items():
-        expected = bus.model_number_table[motor.model]
-        try:
-            found = bus.ping(name)
-        except Exception:  # noqa: BLE001 - a failing ping is a missing servo
-            found = None
-        if found is None:
-            missing.append(f"{motor.id} ({name})")
-        elif found != expected:
-            wrong.append(f"{motor.id} ({name}) is model {found}, expected {motor.model} ({expected})")
-    where = f"{spec.kind}:{spec.port}"
-    if wrong:
-        return f"{where}: wrong servo model: servo {'; '.join(wrong)}: is this a {spec.kind}?", True
-    if len(missing) == len(bus.motors):
-        return (f"{where}: no servo answered (ids 1-{len(bus.motors)} expected): is the arm powered, on this port, "
-                f"and a {spec.kind}?"), False
-    if missing:
-        return f"{where}: servos {', '.join(missing)} did not answer: check their cables", False
-    return f"{where}: the servos' check failed", False
+def leader_words(spec: LeaderSpec) -> ArmWords:
+    """How the connect's messages name this leader."""
+    from devices.lerobot_connect import ArmWords
+
+    return ArmWords(where=f"{spec.kind}:{spec.port}", what="the leader", model_of=f"a {spec.kind}",
+                    calibrate=calibrate_command(spec))
 
 
-def connect_leader(spec: LeaderSpec, tries: int = CONNECT_TRIES):
-    """LeRobot's teleoperator for the spec, connected without calibrating and checked; LeaderError otherwise.
+def connect_leader(spec: LeaderSpec, patient: bool = True):
+    """LeRobot's teleoperator for the spec, checked and connected without calibrating (devices/lerobot_connect.py,
+    the follower's way too); LeaderError otherwise.
 
-    A failure to talk to the servos is tried again (`tries` in all, and for CONNECT_PATIENCE_S when more than one
-    is allowed): a status packet that came late on a busy machine must not stop the command; a missing port or
-    calibration is not.
+    `patient` False: one quick try (a leader reopened every second after an unplug).
     """
     problem = port_problem(spec.port, "the leader")
     if problem:
         raise LeaderError(f"{spec.kind}: {problem}")
     if spec.calibration is not None and not spec.calibration.is_dir():
         raise LeaderError(f"{spec.kind}:{spec.port}: calibration={spec.calibration} is not a folder; {calibrate_command(spec)} writes one")
-    give_up = time.monotonic() + (CONNECT_PATIENCE_S if tries > 1 else 0.0)
-    attempt = 0
-    while True:
-        attempt += 1
-        try:
-            return _connect_once(spec)
-        except _BusTrouble as exc:
-            if attempt >= tries and time.monotonic() >= give_up:
-                raise LeaderError(str(exc)) from None
-            time.sleep(0.1)
+    from devices.lerobot_connect import ArmError, connect_arm
 
-
-class _BusTrouble(Exception):
-    """The servos did not answer as they should while connecting: worth another try."""
-
-
-def _connect_once(spec: LeaderSpec):
     leader = _lerobot_teleoperator(spec)
-    where = f"{spec.kind}:{spec.port}"
     try:
-        leader.connect(calibrate=False)
-    except RuntimeError as exc:  # LeRobot's motor check: a servo missing or of the wrong model
-        problem, lasting = _motor_problem(leader.bus, spec) if leader.bus.is_connected else (f"{where}: {first_words(exc)}", False)
-        drop_leader(leader)
-        raise (LeaderError if lasting else _BusTrouble)(problem) from None
-    except (ConnectionError, OSError, IndexError) as exc:  # IndexError: the Feetech SDK on a short status packet
-        drop_leader(leader)
-        cause = exc.__cause__ or exc
-        if isinstance(cause, PermissionError):
-            raise LeaderError(f"{spec.kind}: {port_problem(spec.port, 'the leader') or f'permission denied on {spec.port}'}") from None
-        raise _BusTrouble(f"{where}: cannot talk to the servos ({first_words(cause)})") from None
-    try:
-        calibrated = leader.is_calibrated
-    except Exception as exc:  # noqa: BLE001 - a read failing mid-check: the bus went away
-        drop_leader(leader)
-        raise _BusTrouble(f"{where}: cannot read the servos' calibration ({first_words(exc)})") from None
-    if not calibrated:
-        path = leader.calibration_fpath
-        drop_leader(leader)
-        if not Path(path).is_file():
-            raise LeaderError(f"{where}: no calibration file {path}; calibrate the leader: {calibrate_command(spec)}")
-        raise LeaderError(f"{where}: the calibration in {path} does not match the servos; calibrate again: {calibrate_command(spec)}")
+        connect_arm(leader, leader_words(spec), energises=False, patient=patient)
+    except ArmError as exc:
+        raise LeaderError(str(exc)) from None
     return leader
-
-
-def first_words(exc: BaseException) -> str:
-    """An exception's first line, or its type's name."""
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def drop_leader(leader) -> None:
     """Close LeRobot's port without another word to the servos (they may be gone)."""
-    try:
-        if leader.bus.is_connected:
-            leader.bus.disconnect(disable_torque=False)
-    except Exception:  # noqa: BLE001 - closing a port that went away
-        pass
+    from devices.lerobot_connect import release
+
+    release(leader, torque_off=False)

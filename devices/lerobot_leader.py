@@ -15,9 +15,11 @@ Two ways to drive, chosen against the session's robot before the first tick:
 The leader's gripper gives the robot's gripper opening (0 closed .. 1 open) either way.
 
 Engaging without a jump (GELLO's rule): at the start of an episode, and when the leader comes
-back after an unplug, an arm more than 0.5 rad (a joint) or 5 cm / 0.5 rad (the EE) from where
-the leader says eases toward it, at most 0.05 rad or 1 cm (and 0.05 rad of turn) a control
-tick; status() says "easing in" until it has caught up. A reader thread of its own polls the bus
+back after an unplug, an arm whose targets are more than 0.5 rad (a joint target) or 5 cm / 0.5 rad
+(the EE target) from where the leader says eases toward it, at most 0.05 rad or 1 cm (and 0.05 rad
+of turn) a control tick. Both the choice and the ease start from the arm's targets, never its joints'
+positions: pressed on the table or a cube, or left by a policy, an arm's targets lie past where it stands.
+status() says "easing in" until it has caught up. A reader thread of its own polls the bus
 (`get_action()`), so a slow or unplugged bus never stalls the control tick; unplugged (its reads
 failing for half a second), the device says "disconnected", sends nothing (the arm holds its last
 target) and tries to reopen the port every second. Retargeting keeps the episode's origin across an
@@ -39,11 +41,11 @@ import numpy as np
 from devices.command import Command
 from devices.joint_map import JointMap, JointMapError, builtin_map_path, load_joint_map
 from devices.leader_connect import (
-    LEADER_TYPES, MOTORS, UNITS, LeaderError, LeaderSpec, connect_leader, drop_leader, first_words,
-    parse_leader_spec,
+    LEADER_TYPES, MOTORS, UNITS, LeaderError, LeaderSpec, connect_leader, drop_leader, parse_leader_spec,
 )
 from devices.retarget import LEADER_ROBOT, LeaderKinematics, Retarget, quat_angle, slerp_toward, to_base, to_world
 from devices.view import SessionView
+from scenes.errors import first_line
 
 ENGAGE_JOINT_RAD = 0.5  # a joint further than this from the leader: ease in
 EASE_JOINT_RAD = 0.05  # per control tick
@@ -102,7 +104,7 @@ class LeaderArm:
         self._last_time = -math.inf
         self._announced = ""
         self._notes: list[str] = []
-        # chosen by check(): "joints" or "retarget"
+        # chosen by choose_mode(): "joints" or "retarget"
         self.mode: str | None = None
         self._index: list[int | None] = []  # arm joint -> index of the map rule that drives it
         self._out_q: np.ndarray | None = None
@@ -127,7 +129,7 @@ class LeaderArm:
         except Exception as exc:  # noqa: BLE001 - the first read: any failure means the leader is unusable
             drop_leader(self._leader)
             self._leader = None
-            raise LeaderError(f"{self.name}: the servos do not answer reads ({first_words(exc)})") from None
+            raise LeaderError(f"{self.name}: the servos do not answer reads ({first_line(exc)})") from None
         self.readings = 1
         self._connected = True  # said at the first tick, as "connected" or "easing in"
         self._thread = threading.Thread(target=self._run, name=f"{self.name}-reader", daemon=True)
@@ -180,7 +182,7 @@ class LeaderArm:
                 failing_since = now if failing_since is None else failing_since
                 if now - failing_since >= LOST_AFTER_S:
                     failing_since = None
-                    self._lost(first_words(exc))
+                    self._lost(first_line(exc))
                 else:
                     self._stop.wait(READ_PERIOD_S)
                 continue
@@ -192,10 +194,13 @@ class LeaderArm:
 
     def _reopen(self) -> None:
         try:
-            leader = connect_leader(self.spec, tries=1)  # the next try is RECONNECT_S away
+            leader = connect_leader(self.spec, patient=False)  # the next try is RECONNECT_S away
             sample = _reading(leader.get_action())
         except Exception as exc:  # noqa: BLE001 - still unplugged (or not answering yet): try again later
-            self.problem = first_words(exc)
+            self.problem = first_line(exc)
+            return
+        if self._stop.is_set():  # closed meanwhile: this port is no one's
+            drop_leader(leader)
             return
         with self._lock:
             self._leader = leader
@@ -229,7 +234,11 @@ class LeaderArm:
 
     # -- control tick -----------------------------------------------------
     def check(self, view: SessionView) -> None:
-        """Choose joints or retargeting for the session's robot; LeaderError when neither fits."""
+        """SceneChecked, before the first tick: a leader that cannot drive this robot is one line (choose_mode)."""
+        self.choose_mode(view)
+
+    def choose_mode(self, view: SessionView) -> str:
+        """Choose joints or retargeting for the session's robot, set it up and return it; LeaderError when neither fits."""
         if not 0 <= self.arm < view.n_arms:
             raise LeaderError(f"{self.name}: arm={self.arm} but the robot has {view.n_arms} arm(s)")
         robot = view.robot_name
@@ -242,7 +251,7 @@ class LeaderArm:
                                   f"(its joints: {', '.join(names)})")
             self._index = [by_robot.get(n) for n in names]
             self.mode = "joints"
-            return
+            return self.mode
         if self.spec.kind == "koch_leader" or self.map.robot != LEADER_ROBOT:
             raise LeaderError(
                 f"{self.name} drives the {self.map.robot} joint for joint only (no {self.spec.kind.removesuffix('_leader')} "
@@ -252,11 +261,12 @@ class LeaderArm:
         scale = self.spec.scale if self.spec.scale is not None else view.reach / self._kin.reach
         self._retarget = Retarget(scale)
         self.mode = "retarget"
+        return self.mode
 
     def poll(self, view: SessionView, dt: float) -> list[Command]:
         """The newest leader reading as this tick's commands (nothing while disconnected: the arm holds)."""
         if self.mode is None:
-            self.check(view)
+            self.choose_mode(view)
         with self._lock:
             sample = self._sample
             connected = self._connected
@@ -299,8 +309,9 @@ class LeaderArm:
         rules = self.map.joints
         want = np.array([self._out_q[i] if k is None else values[rules[k].robot] for i, k in enumerate(self._index)])
         want = np.minimum(np.maximum(want, lo), hi)
-        if engage:
-            self._easing = bool(np.max(np.abs(want - view.joint_positions(self.arm)), initial=0.0) > ENGAGE_JOINT_RAD)
+        if engage:  # judged against the targets it eases from, not the joints' positions: an arm pressed on the
+            # table or a cube (or left by a policy) has targets past where it stands, and a jump from them is a jump
+            self._easing = bool(np.max(np.abs(want - self._out_q), initial=0.0) > ENGAGE_JOINT_RAD)
         if self._easing:
             step = np.clip(want - self._out_q, -EASE_JOINT_RAD, EASE_JOINT_RAD)
             self._out_q = self._out_q + step

@@ -114,9 +114,6 @@ class Retarget:
         self.leader0 = (np.asarray(leader[0], dtype=float).copy(), np.asarray(leader[1], dtype=float).copy())
         self.robot0 = (np.asarray(robot[0], dtype=float).copy(), np.asarray(robot[1], dtype=float).copy())
 
-    def release(self) -> None:
-        self.leader0 = self.robot0 = None
-
     def target(self, leader: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """The robot's EE target (base frame) for the leader's gripper pose now."""
         assert self.leader0 is not None and self.robot0 is not None, "engage first"

@@ -390,6 +390,16 @@ class ServoEmulator:
         """Stop answering (all servos, or only `ids`), as when a cable is pulled; LeRobot then times out."""
         return self.command("unplug", ids=None if ids is None else [int(i) for i in ids])["t"]
 
+    def unplug_at(self, instruction: str) -> None:
+        """Stop answering (all servos) as the next packet of `instruction` ("ping", "read", "write", "sync_read")
+        arrives, that packet included: a cable pulled at a known step of what the host does. `unplugged()` says
+        when it happened; `replug()` ends it."""
+        self.command("unplug_at", instruction=instruction)
+
+    def unplugged(self) -> bool:
+        """Whether the whole bus is silent now (`unplug()`, or `unplug_at()` reached)."""
+        return bool(self.stats()["unplugged"])
+
     def replug(self, ids=None) -> float:
         """Answer again (the servos keep their registers, as on a data cable pulled with power kept)."""
         return self.command("replug", ids=None if ids is None else [int(i) for i in ids])["t"]
@@ -425,7 +435,7 @@ class ServoEmulator:
         return [w for w in self.writes() if w["register"] == "Torque_Enable"]
 
     def stats(self) -> dict:
-        """Packets received by instruction name ({"ping": 6, "sync_read": 12, ...}) and bytes in/out."""
+        """Packets received by instruction name ({"ping": 6, "sync_read": 12, ...}), bytes in/out, and "unplugged"."""
         return self.command("stats")
 
     # -- LeRobot's units and calibration files
@@ -600,11 +610,14 @@ def control(bus, request: dict, counters: dict) -> dict:
                 if int(key) in bus.servos:
                     bus.servos[int(key)].present = op == "replug"
         return {"ok": True, "t": now}
+    if op == "unplug_at":
+        bus.unplug_at = str(request["instruction"])
+        return {"ok": True}
     if op == "corrupt":
         bus.corrupt = int(request["count"])
         return {"ok": True}
     if op == "stats":
-        return {"ok": True, "packets": dict(bus.counts), **counters}
+        return {"ok": True, "packets": dict(bus.counts), "unplugged": bus.unplugged, **counters}
     return {"ok": False, "error": f"unknown command {op!r}"}
 
 

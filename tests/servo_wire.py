@@ -314,6 +314,7 @@ class ServoBus:
         self.buffer_since = 0.0
         self.corrupt = 0  # this many next status packets go out with a wrong checksum
         self.unplugged = False
+        self.unplug_at: str | None = None  # an instruction name: the bus goes silent as the next such packet arrives
         self.counts: dict[str, int] = {}
 
     def listening(self, servo_id: int) -> list[Servo]:
@@ -340,6 +341,8 @@ class ServoBus:
             servo_id, instruction, params = packet
             name = self.instruction_names.get(instruction, f"0x{instruction:02x}")
             self.counts[name] = self.counts.get(name, 0) + 1
+            if self.unplug_at == name:  # a cable pulled just as the host got here: this packet goes unanswered
+                self.unplugged, self.unplug_at = True, None
             for reply in self.handle(servo_id, instruction, params, time.monotonic()):
                 if self.corrupt > 0:
                     self.corrupt -= 1

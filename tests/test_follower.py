@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,9 +26,10 @@ from devices.base import DeviceError
 from devices.command import Command
 from replay import load_episode
 from teleop.control.follower import Follower, open_follower
-from teleop.control.follower_spec import check_pairing, parse_follower_spec
+from teleop.control.follower_spec import check_pairing, leader_map_of, motor_map, parse_follower_spec
 from teleop.control.session import Session
 from teleop.errors import UsageError
+from devices.joint_map import builtin_map_path
 from tests.servo_emulator import MOTOR_NAMES, FeetechEmulator
 from tests.support import ROOT, assert_one_line_error, run_cli, run_main, wait_until, write_script
 
@@ -242,7 +244,7 @@ def test_missing_or_mismatched_calibration_names_lerobot_calibrate(tmp_path: Pat
                                               rf"--robot.port={arm.port} --robot.id=other"):
             Follower(parse_follower_spec(f"so101_follower:{arm.port}:id=other:calibration={cal}")).open(names)
         arm.write_calibration_file(cal, "off", mismatch=True)
-        with pytest.raises(DeviceError, match=r"do not match the calibration .*lerobot-calibrate .*--robot.id=off"):
+        with pytest.raises(DeviceError, match=r"calibration in .* does not match the servos; calibrate again: lerobot-calibrate .*--robot.id=off"):
             Follower(parse_follower_spec(f"so101_follower:{arm.port}:id=off:calibration={cal}")).open(names)
         assert arm.goal_log() == [] and not any(w["value"] == 1 for w in arm.torque_log())
 
@@ -309,3 +311,165 @@ def test_resets_are_followed_at_max_step_with_torque_on_and_an_unplugged_arm_is_
         assert_torque_off_at_end(arm)
         follower.close()  # again: nothing more happens
         assert follower.status()["state"] == "disconnected"
+
+
+# --- the joint map (issue 56 item 1) ---------------------------------------------------------------------------
+
+ARM = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll")
+
+
+def flipped_map(path: Path, joint: str = "elbow_flex") -> Path:
+    """The repository's SO-101 leader map with one joint's sign flipped: an arm whose joint runs backwards."""
+    text = builtin_map_path("so101_leader").read_text()
+    old = f'{joint} = {{ robot_joint = "{joint}", sign = 1'
+    assert old in text
+    path.write_text(text.replace(old, f'{joint} = {{ robot_joint = "{joint}", sign = -1'))
+    return path
+
+
+def test_a_leaders_map_with_a_flipped_sign_moves_the_follower_with_the_leader(tmp_path: Path):
+    """The leader's map flips elbow_flex: the simulated elbow bends the other way, and the follower (no map of its
+    own) maps back through the leader's map, so its Goal_Position moves with the leader's elbow, not against it.
+    Leader and follower share one calibration: every goal ends where the leader's servo stands."""
+    held = {"shoulder_lift.pos": 20.0, "elbow_flex.pos": 25.0, "wrist_flex.pos": 40.0, "gripper.pos": 50.0}
+    arm, cal = start_follower(tmp_path)
+    with arm, FeetechEmulator.start(tmp_path, role="leader") as leader:
+        leader.write_calibration_file(tmp_path / "lcal", "lead")
+        leader.set_action({f"{m}.pos": 0.0 for m in ARM} | held)
+        want = leader.positions()
+        mid = round(arm.calibration["elbow_flex"].mid)
+        assert want[3] - mid > 250  # the leader's elbow is bent 25 degrees up its range
+        word = f"so101_leader:{leader.port}:id=lead:calibration={tmp_path / 'lcal'}:map={flipped_map(tmp_path / 'flip.toml')}"
+        result = run_cli("run", "--device", word, "--robot", "so101", "--follower", spec_of(arm, cal), "--seconds", "4",
+                         "--json", timeout=240)
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert json.loads(result.stdout)["follower"]["sent"] >= 40
+        goals = assert_eased(arm, FAR)
+        assert_torque_off_at_end(arm)
+    elbow = [g[3] for g in goals]
+    assert elbow[-1] - mid > 250, f"the follower's elbow went against the leader's: {elbow[0]} .. {elbow[-1]}, mid {mid}"
+    assert max(abs(goals[-1][i] - want[i]) for i in range(1, 7)) <= 8, (goals[-1], want)
+
+
+def test_the_followers_own_map_comes_first_and_a_missing_one_is_one_line(tmp_path: Path):
+    flip = flipped_map(tmp_path / "flip.toml", "wrist_flex")
+    names = ARM
+    own = parse_follower_spec(f"so101_follower:/dev/ttyACM0:map={flip}")
+    assert own.map == flip
+    q = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
+    built_in = motor_map(parse_follower_spec("so101_follower:/dev/ttyACM0"), names).values(q, 0.5)
+    flipped = motor_map(own, names, leader_map=builtin_map_path("so101_leader")).values(q, 0.5)  # its own map first
+    assert flipped[3] == pytest.approx(-built_in[3]) and flipped[:3] == pytest.approx(built_in[:3])
+    # the leader's map= is found among the --device words, for the arm the follower mirrors (a koch leader's is not)
+    words = f"gizmo,so101_leader:/dev/ttyACM1:id=a:map={flip},koch_leader:/dev/ttyACM2:map=/k.toml"
+    assert leader_map_of(words) == flip
+    assert leader_map_of(f"so101_leader:/dev/ttyACM1:map={flip}:arm=1", arm=0, n_arms=2) is None
+    assert leader_map_of("koch_leader:/dev/ttyACM2:map=/k.toml") is None and leader_map_of(None) is None
+    # a map= that is not there: one line, exit 2, never the built-in in its place
+    result = run_main("run", "--device", "script:x.json", "--robot", "so101",
+                      "--follower", f"so101_follower:/dev/ttyACM0:map={tmp_path / 'nope.toml'}")
+    assert_one_line_error(result, "nope.toml", "no such joint map file")
+    result = run_main("run", "--device", f"so101_leader:{tmp_path / 'ttyNONE'}:map={tmp_path / 'gone.toml'}", "--robot", "so101",
+                      "--follower", f"so101_follower:{tmp_path / 'ttyNONE2'}")
+    assert_one_line_error(result, "gone.toml", "no such joint map file")
+
+
+# --- torque off on every way out of connecting (issue 56 item 2) ---------------------------------------------------
+
+STAGES = {  # a stage of Follower.open -> the first packet of it: the emulated cable is pulled as it arrives
+    "pinging": "ping",  # the servos' models, before anything is energised
+    "reading the calibration": "read",  # the calibration registers
+    "configuring": "write",  # inside LeRobot's connect: its first write is torque off, to configure the servos
+    "torque on": "sync_read",  # LeRobot's connect returned, torque on: the first read of where the arm stands
+}
+
+
+@pytest.mark.parametrize(("stage", "sig"), [
+    ("pinging", signal.SIGTERM), ("reading the calibration", signal.SIGINT), ("configuring", signal.SIGINT),
+    ("torque on", signal.SIGINT), ("torque on", signal.SIGTERM),
+], ids=["pinging-SIGTERM", "calibration-SIGINT", "configuring-SIGINT", "torque_on-SIGINT", "torque_on-SIGTERM"])
+def test_an_interrupt_at_any_stage_of_connecting_leaves_torque_off(tmp_path: Path, stage: str, sig: int):
+    """Ctrl-C (SIGINT) or SIGTERM (raised as KeyboardInterrupt, as the command line does) while the follower connects.
+
+    The emulated servos go silent as the host reaches the stage, so the connect is held there (each step asks
+    again for seconds), the signal comes, and they answer again. Torque is off on every servo at the end,
+    Torque_Enable 0 is the last thing written to each, and nothing follows.
+    """
+    arm, cal = start_follower(tmp_path)
+    main = threading.main_thread().ident
+    previous = {s: signal.signal(s, signal.default_int_handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    fired = threading.Event()
+    opening = threading.Event()
+
+    def interrupt() -> None:
+        wait_until(lambda: arm.unplugged() or not opening.is_set(), 60)
+        if not opening.is_set():
+            return
+        time.sleep(0.3)  # the host is asking again inside this stage
+        fired.set()
+        signal.pthread_kill(main, sig)
+        arm.replug()  # the servos hear torque off
+
+    try:
+        with arm:
+            arm.unplug_at(STAGES[stage])
+            opening.set()
+            watcher = threading.Thread(target=interrupt, daemon=True)
+            watcher.start()
+            follower = Follower(parse_follower_spec(spec_of(arm, cal)))
+            with pytest.raises(KeyboardInterrupt):
+                try:
+                    follower.open(ARM)
+                finally:
+                    opening.clear()
+                    watcher.join(30)
+            assert fired.is_set() and follower.robot is None
+            time.sleep(0.5)  # anything still to be sent would come now
+            writes = arm.writes()
+            states = {i: arm.read(i, "Torque_Enable") for i in range(1, 7)}
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    assert states == {i: 0 for i in range(1, 7)}, states
+    assert arm.goal_log() == []
+    torque = [(k, w) for k, w in enumerate(writes) if w["register"] == "Torque_Enable"]
+    enabled = [w for _, w in torque if w["value"] == 1]
+    if stage in ("pinging", "reading the calibration"):
+        assert not torque, torque  # never energised, nothing written
+        return
+    last = {w["id"]: w["value"] for _, w in torque}
+    assert set(last.values()) == {0}, last  # each servo told: torque off last
+    off = max(k for k, w in torque if w["value"] == 0)
+    assert [w for w in writes[off + 1:] if w["register"] != "Lock"] == []  # and nothing after (Lock 0 goes with it)
+    if stage == "torque on":
+        assert {w["id"] for w in enabled} == set(range(1, 7))  # LeRobot's connect had energised every servo
+        assert {w["id"] for _, w in torque if w["value"] == 0 and w["t"] >= enabled[-1]["t"]} == set(range(1, 7))
+
+
+def test_close_waits_for_a_send_or_reconnect_in_flight_and_nothing_follows_torque_off(tmp_path: Path):
+    """An unplugged follower is reconnected by its thread (torque on again) while the session ends: close() waits
+    for the bus operation in flight, disables torque, and nothing is written after, however long it is watched."""
+    arm, cal = start_follower(tmp_path)
+    with arm:
+        session = Session("lift", "so101", seed=0, control_hz=30.0)
+        follower = open_follower(spec_of(arm, cal), session)
+        try:
+            _drive(session, follower, lambda: len(goal_rows(arm)) >= 5, "goals sent")
+            arm.unplug()
+            _drive(session, follower, lambda: follower.state == "disconnected", "disconnected")
+            arm.replug()
+            before = len(arm.torque_log())
+            _drive(session, follower, lambda: len(arm.torque_log()) > before, "the reconnect's torque on")  # in flight
+        finally:
+            follower.close()
+        time.sleep(RECONNECT_WATCH_S)
+        writes = arm.writes()
+        states = {i: arm.read(i, "Torque_Enable") for i in range(1, 7)}
+    assert states == {i: 0 for i in range(1, 7)}, states
+    last = {w["id"]: w["value"] for w in writes if w["register"] == "Torque_Enable"}
+    assert last == {i: 0 for i in range(1, 7)}, last
+    off = max(k for k, w in enumerate(writes) if w["register"] == "Torque_Enable" and w["value"] == 0)
+    assert [w for w in writes[off + 1:] if w["register"] != "Lock"] == []
+
+
+RECONNECT_WATCH_S = 2.5  # over two of the follower's reconnect periods (RECONNECT_S)

@@ -299,8 +299,7 @@ def test_a_retargeting_leader_back_from_an_unplug_eases_the_panda_in(tmp_path):
         device = make_leader("so101_leader", f"{leader.port}:id=arm:calibration={tmp_path / 'cal'}:scale=2", log=lambda m: None)
         device.start()
         try:
-            device.check(view)
-            assert device.mode == "retarget"
+            assert device.choose_mode(view) == "retarget" and device.mode == "retarget"
             for _ in range(5):
                 session.step(device.poll(view, session.dt))
             start = view.target_pose(0)[0]
@@ -325,6 +324,54 @@ def test_a_retargeting_leader_back_from_an_unplug_eases_the_panda_in(tmp_path):
     assert said[0] == "easing in" and said[-1] == "connected", said
     assert steps.max() <= 0.01 + 1e-9 and steps[:3].min() > 0.0099, steps.round(4)
     assert np.linalg.norm(path[-1] - (start + want)) < 1e-3, (path[-1] - start, want)  # 1 mm: the leader's raw steps
+
+
+PRESSED = {"shoulder_lift": 1.4, "elbow_flex": 0.2, "wrist_flex": 1.2}  # the so101's gripper pushed down into the table
+
+
+@pytest.mark.e2e
+def test_re_engaging_an_arm_pressed_on_the_table_eases_from_its_targets(tmp_path):
+    """Issue 56 item 4. In process (a real Session, LeRobot's SOLeader on the emulator): the leader presses the so101
+    into the table, so its joint targets lie far past where the joints stand; unplugged, the leader is moved to where
+    the joints stand (within 0.5 rad of them, over 0.5 rad from the targets) and plugged back. The ease-in decides
+    with the targets it eases from: no joint target steps more than 0.05 rad a tick on the way to the leader."""
+    from teleop.control.session import Session
+
+    session = Session(scene="lift", robot="so101", seed=0, control_hz=30.0)
+    view = session.controller
+    with FeetechEmulator.start(tmp_path, role="leader") as leader:
+        leader.write_calibration_file(tmp_path / "cal", "arm")
+        leader.set_positions(so_pose(leader, **PRESSED))
+        device = make_leader("so101_leader", f"{leader.port}:id=arm:calibration={tmp_path / 'cal'}", log=lambda m: None)
+        device.start()
+        try:
+            assert device.choose_mode(view) == "joints"
+            for _ in range(80):  # eased in from home (shoulder_lift 1.25 rad away: 25 ticks), then pressing
+                session.step(device.poll(view, session.dt))
+            pressed = view.joint_targets(0).copy()
+            standing = view.joint_positions(0).copy()
+            lift = ARM_JOINTS.index("shoulder_lift")
+            assert abs(pressed[lift] - PRESSED["shoulder_lift"]) < 0.01, pressed
+            assert pressed[lift] - standing[lift] > 0.6, "the arm is not held up by the table"
+            leader.unplug()
+            wait_until(lambda: device.status() == "disconnected", 10, "the device to see the unplug")
+            for _ in range(3):
+                session.step(device.poll(view, session.dt))
+            leader.set_positions(so_pose(leader, **dict(zip(ARM_JOINTS, map(float, standing)))))
+            leader.replug()
+            wait_until(lambda: device.status() == "connected", 10, "the device to reconnect")
+            path, said = [view.joint_targets(0).copy()], []
+            for _ in range(60):
+                session.step(device.poll(view, session.dt))
+                path.append(view.joint_targets(0).copy())
+                said.append(device.status())
+        finally:
+            device.close()
+    assert np.allclose(path[0], pressed), "the targets moved while the leader was unplugged"
+    steps = np.abs(np.diff(np.array(path), axis=0))
+    assert steps.max() <= 0.05 + 1e-9, f"a joint target jumped {steps.max():.3f} rad in one tick"
+    assert said[0] == "easing in" and said[-1] == "connected", said
+    assert np.max(np.abs(path[-1] - standing)) < 0.01, (path[-1], standing)  # it reached the leader (a raw step: 1.5 mrad)
 
 
 # -- Koch: joint space only ----------------------------------------------------------------------------------

@@ -1,17 +1,20 @@
 """A real follower arm that mirrors the simulated one (issue 47): LeRobot's `SOFollower`, fed by a thread of its own.
 
-`--follower so101_follower:PORT[:id=NAME][:calibration=DIR][:max_step=DEG]` pairs a real SO-101 with the
-simulated so101. A thread of its own, at the control rate, reads the simulated arm's joint targets (the
-arm actuators' ctrl, radians, and the gripper's ctrl), turns them into LeRobot's degrees (and the gripper's
-0..100) through the SO-101 leader's joint map inverted (devices/leader_maps, devices/joint_map.py), clamps
-each joint to the follower's calibrated range (counted) and its change to `max_step` degrees a tick (the
-gripper's to max_step of its 0..100, as LeRobot does; `max_step` is also LeRobot's own `max_relative_target`,
-measured from the servo's present position), and sends it with
+`--follower so101_follower:PORT[:id=NAME][:calibration=DIR][:map=FILE][:max_step=DEG]` pairs a real SO-101 with
+the simulated so101. It connects the way a leader does (devices/lerobot_connect.py: pings, the calibration, then
+LeRobot's connect, patiently). A thread of its own, at the control rate, reads the simulated arm's joint targets
+(the arm actuators' ctrl, radians, and the gripper's ctrl), turns them into LeRobot's degrees (and the gripper's
+0..100) through a leader's joint map inverted (its `map=`, the driving leader's `map=`, else the built-in one:
+teleop/control/follower_spec.py), clamps each joint to the follower's calibrated range (counted) and its
+change to `max_step` degrees a tick (the gripper's to max_step of its 0..100, as LeRobot does; `max_step` is also
+LeRobot's own `max_relative_target`, measured from the servo's present position), and sends it with
 `send_action`. So a follower that starts elsewhere eases to the simulated pose ("catching up") before
 it tracks it ("tracking"), and a reset to the next seed is followed at `max_step`, never as a jump; the
-control tick itself never waits on the serial bus. `close()` stops sending and disables torque (LeRobot's
-`disconnect()`), whatever ended the session. LeRobot is imported only when a follower is opened. The
-`--follower` value and the motor map are teleop/control/follower_spec.py.
+control tick itself never waits on the serial bus. Torque goes off on every way out (issue 56 item 2): a
+fault, Ctrl-C or SIGTERM anywhere in `open()` (before and after LeRobot's connect enabled it) releases the arm
+before the error goes on; every bus operation of the thread (a send, a reconnect inside LeRobot's connect)
+holds one lock and starts only if the follower is not closing, so `close()` waits for the one in flight, then
+disables torque, and nothing is sent after. LeRobot is imported only when a follower is opened.
 """
 
 from __future__ import annotations
@@ -19,15 +22,17 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from devices.base import DeviceError
-from devices.serial_ports import DIALOUT_HINT, port_problem
+from devices.lerobot_connect import ArmError, ArmWords, connect_arm, patiently, release
+from devices.serial_ports import port_problem
 from scenes.errors import first_line
-from teleop.control.follower_spec import FollowerSpec, MotorMap, check_pairing, motor_map, parse_follower_spec
+from scenes.workers.interrupts import shielded
+from teleop.control.follower_spec import FollowerSpec, MotorMap, check_pairing, leader_map_of, motor_map, parse_follower_spec
 
 if TYPE_CHECKING:  # annotations only
     from teleop.control.session import Session
@@ -36,13 +41,6 @@ TRACKING_GAP_DEG = 3.0  # tracking: nothing held back by the step limit, every a
 RECONNECT_S = 1.0  # between tries to reach a follower that stopped answering
 STALL_S = 0.5  # failed sends for this long, none answered, and the follower is "disconnected"; a busy host or
 # USB adapter drops a reply now and then (counted in `errors`), which is not a pulled cable
-PING_TRIES = 3  # a servo that does not answer this many pings, nor any until the bus's patience is out, is missing
-PING_PATIENCE_S = 3.0  # seconds from the first ping: one waits ~35 ms for its answer, which a busy USB adapter or
-# host can miss for a while; shared by the whole bus, so a port with no servo at all costs this once, not per servo
-CALIBRATION_READS = 3  # reads of the servos' calibration registers that must all differ from the file to refuse it
-CONNECT_TRIES = 2  # LeRobot's connect (its own handshake, then configuration writes) on a busy bus, tried at least
-CONNECT_PATIENCE_S = 2.0  # this often and for this long (the servos answered our pings just before: a failure here
-# is a reply that came late, which a loaded host or USB adapter makes now and then, not a missing arm)
 _CLAMP_WARNING = "Relative goal position magnitude had to be clamped"  # LeRobot logs this on every clamped send
 
 
@@ -51,57 +49,6 @@ class _DropClampWarnings(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith(_CLAMP_WARNING)
-
-
-def _patiently(read: Callable[[], Any], patience_s: float = CONNECT_PATIENCE_S) -> Any:
-    """`read()`, asked again for up to `patience_s` while it raises (a reply late on a loaded host); then its error."""
-    give_up = time.monotonic() + patience_s
-    while True:
-        try:
-            return read()
-        except Exception:  # noqa: BLE001 - LeRobot raises ConnectionError, the SDK IndexError on a short packet
-            if time.monotonic() >= give_up:
-                raise
-            time.sleep(0.05)
-
-
-def _ping(bus: Any, motor: str, give_up: float) -> int | None:
-    """A servo's model number, or None if it answers none of PING_TRIES pings, nor any more until `give_up`
-    (time.monotonic()); a garbled answer is asked again (the Feetech SDK raises IndexError on a short status packet)."""
-    tries = 0
-    while True:
-        try:
-            model = bus.ping(motor)
-        except Exception:  # noqa: BLE001
-            model = None
-        tries += 1
-        if model is not None:
-            return model
-        if tries >= PING_TRIES and time.monotonic() >= give_up:
-            return None
-        time.sleep(0.01)  # a port that fails at once is not asked in a busy loop
-
-
-def _release(robot: Any) -> None:
-    """Torque off and the port closed, as far as the arm still answers."""
-    bus = robot.bus
-    if not bus.is_connected:
-        return
-    try:
-        bus.disconnect(disable_torque=True)
-    except Exception:  # noqa: BLE001 - an arm that does not answer cannot be told; close the port anyway
-        try:
-            bus.port_handler.closePort()
-        except Exception:  # noqa: BLE001
-            pass
-
-
-def _open_error(spec: FollowerSpec, exc: BaseException) -> DeviceError:
-    """One line for a port LeRobot could not open (its own message is several lines)."""
-    cause = exc.__cause__ or exc.__context__ or exc
-    if isinstance(cause, PermissionError) or "ermission denied" in str(cause):
-        return DeviceError(f"{spec.port}: {DIALOUT_HINT}")
-    return DeviceError(f"{spec.port}: cannot open the follower's port ({first_line(cause) or type(cause).__name__})")
 
 
 class Follower:
@@ -127,6 +74,7 @@ class Follower:
         self._lo = self._hi = np.zeros(0)  # the motors' calibrated range in LeRobot's units
         self._last: np.ndarray | None = None  # the goals sent last (LeRobot's units), where the next may step from
         self._stop = threading.Event()
+        self._bus_lock = threading.Lock()  # held by every bus operation of the thread, and by close()
         self._thread: threading.Thread | None = None
         self._session: Session | None = None
         self._send_times: list[float] = []
@@ -134,10 +82,20 @@ class Follower:
         self._closed = False
 
     # -- connecting ------------------------------------------------------------------------------------
-    def open(self, joint_names: tuple[str, ...]) -> None:
-        """Connect to the arm, checked: its port, the servos answering with the right model, the calibration."""
+    def words(self) -> ArmWords:
+        """How the connect's messages name this follower."""
+        return ArmWords(where=self.spec.port, what="the follower", model_of="an SO-101 follower",
+                        calibrate=self.spec.calibrate_hint())
+
+    def open(self, joint_names: tuple[str, ...], leader_map: Path | None = None) -> None:
+        """Connect to the arm, checked (devices/lerobot_connect.py): its port, the servos answering with the right
+        model, the calibration, then LeRobot's connect (torque on) and a first read of where it stands.
+
+        `leader_map`: the `map=` of the leader driving the session, used when the follower has none of its own.
+        Any way out but a normal return (a fault, Ctrl-C, SIGTERM) leaves the arm with torque off and its port closed.
+        """
         spec = self.spec
-        self.map = motor_map(spec, joint_names)
+        self.map = motor_map(spec, joint_names, leader_map)
         problem = port_problem(spec.port, "the follower")
         if problem is not None:
             raise DeviceError(problem)
@@ -148,25 +106,34 @@ class Follower:
         config = SOFollowerRobotConfig(port=spec.port, id=spec.id, calibration_dir=spec.calibration,
                                        max_relative_target=float(spec.max_step_deg), cameras={}, use_degrees=True)
         robot = SOFollower(config)
-        if not robot.calibration_fpath.is_file():
-            raise DeviceError(f"no calibration file {robot.calibration_fpath} for this follower: run `{spec.calibrate_hint()}`")
         unknown = [m for m in self.map.motors if m not in robot.bus.motors]
         if unknown:
             raise DeviceError(f"{self.map.source}: {unknown[0]!r} is not a motor of the {spec.kind}")
-        self._check_bus(robot)
-        give_up, attempt = time.monotonic() + CONNECT_PATIENCE_S, 0
-        while True:
-            attempt += 1
+        connected = False  # LeRobot's connect returned: torque is on, and this method must turn it off on the way out
+        try:
             try:
-                robot.connect(calibrate=False)  # LeRobot's calibrate() would wait on stdin: never called
-                break
-            except Exception as exc:  # noqa: BLE001 - LeRobot's several lines become one
-                _release(robot)  # it may have enabled torque before it failed
-                if attempt >= CONNECT_TRIES and time.monotonic() >= give_up:
-                    raise _open_error(spec, exc) from None
-                time.sleep(0.1)
-        self.robot = robot
-        logging.getLogger().addFilter(self._filter)
+                connect_arm(robot, self.words(), energises=True)  # released by itself on any way out of it
+                connected = True
+            except ArmError as exc:
+                raise DeviceError(str(exc)) from None
+            self.robot = robot
+            logging.getLogger().addFilter(self._filter)
+            self._lo, self._hi = self._ranges(robot)
+            try:
+                self._last = patiently(self._present)
+            except Exception as exc:  # noqa: BLE001
+                raise DeviceError(f"{spec.port}: the follower stopped answering ({first_line(exc)})") from None
+            self.state = "connected"
+        except BaseException:  # a fault, Ctrl-C or SIGTERM after LeRobot's connect enabled torque
+            if connected:
+                self.robot = robot
+                _, interrupted = shielded(self.close)
+                if interrupted:
+                    raise KeyboardInterrupt from None
+            raise
+
+    def _ranges(self, robot: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The map's motors' calibrated ranges in LeRobot's units (degrees about the range's middle; gripper 0..100)."""
         cal = robot.bus.calibration
         lo, hi = [], []
         for motor in self.map.motors:
@@ -179,50 +146,7 @@ class Follower:
             else:  # the gripper: 0..100 over its calibrated range
                 lo.append(0.0)
                 hi.append(100.0)
-        self._lo, self._hi = np.array(lo), np.array(hi)
-        try:
-            self._last = _patiently(self._present)
-        except Exception as exc:  # noqa: BLE001
-            self.close()
-            raise DeviceError(f"{spec.port}: the follower stopped answering ({first_line(exc)})") from None
-        self.state = "connected"
-
-    def _check_bus(self, robot: Any) -> None:
-        """Ping each servo and compare the calibration before LeRobot's connect (which would energise the arm)."""
-        spec, bus = self.spec, robot.bus
-        try:
-            bus.connect(handshake=False)
-        except Exception as exc:  # noqa: BLE001
-            raise _open_error(spec, exc) from None
-        try:
-            give_up = time.monotonic() + PING_PATIENCE_S
-            found = {name: _ping(bus, name, give_up) for name in bus.motors}
-            silent = [name for name, model in found.items() if model is None]
-            if len(silent) == len(found):
-                raise DeviceError(f"{spec.port}: no servo answered (ids 1-6): is the follower powered and on this port?")
-            if silent:
-                ids = ", ".join(f"{bus.motors[n].id} ({n})" for n in silent)
-                raise DeviceError(f"{spec.port}: servo {ids} did not answer: check its cable")
-            for name, model in found.items():
-                expected = bus.model_number_table[bus.motors[name].model]
-                if model != expected:
-                    raise DeviceError(f"{spec.port}: servo {bus.motors[name].id} ({name}) is model {model}, not an "
-                                      f"{bus.motors[name].model.upper()} ({expected}): is this an SO-101 follower?")
-            try:
-                calibrated = _patiently(lambda: robot.is_calibrated)
-                for _ in range(CALIBRATION_READS - 1):  # a mismatch is said only when every read finds it: a read
-                    if calibrated:  # garbled on a loaded host or bus differs once, a wrong calibration every time
-                        break
-                    time.sleep(0.05)
-                    calibrated = _patiently(lambda: robot.is_calibrated)
-            except Exception as exc:  # noqa: BLE001 - it answered our pings, then stopped
-                raise DeviceError(f"{spec.port}: the follower's servos stopped answering while their calibration was "
-                                  f"read ({first_line(exc)})") from None
-            if not calibrated:
-                raise DeviceError(f"{spec.port}: the follower's servos do not match the calibration in "
-                                  f"{robot.calibration_fpath}: run `{spec.calibrate_hint()}`")
-        finally:
-            bus.disconnect(disable_torque=False)  # nothing was enabled yet
+        return np.array(lo), np.array(hi)
 
     # -- following -------------------------------------------------------------------------------------
     def follow(self, session: Session) -> None:
@@ -265,24 +189,29 @@ class Follower:
             now = time.perf_counter()
             if due < now - 1.0:
                 due = now  # a stall over a second: start the schedule again
-            if self.state == "disconnected":
-                if now >= retry_at:
-                    retry_at = now + RECONNECT_S
-                    self._reconnect()
-            else:
-                try:
-                    self.send_once()
-                    failing_since = None
-                except Exception as exc:  # noqa: BLE001 - a follower that stops answering is shown, then retried
-                    self.errors += 1
-                    self.error = first_line(exc) or type(exc).__name__
-                    failing_since = now if failing_since is None else failing_since
-                    if time.perf_counter() - failing_since >= STALL_S:
-                        self.state = "disconnected"
+            note = None
+            with self._bus_lock:  # close() holds it while it disables torque: nothing is sent after
+                if self._stop.is_set():
+                    break
+                if self.state == "disconnected":
+                    if now >= retry_at:
+                        retry_at = now + RECONNECT_S
+                        self._reconnect()
+                else:
+                    try:
+                        self.send_once()
                         failing_since = None
-                        retry_at = time.perf_counter() + RECONNECT_S
-                        if self._session is not None:
-                            self._session.stats.note(f"follower {self.spec.port} stopped answering: {self.error}")
+                    except Exception as exc:  # noqa: BLE001 - a follower that stops answering is shown, then retried
+                        self.errors += 1
+                        self.error = first_line(exc)
+                        failing_since = now if failing_since is None else failing_since
+                        if time.perf_counter() - failing_since >= STALL_S:
+                            self.state = "disconnected"
+                            failing_since = None
+                            retry_at = time.perf_counter() + RECONNECT_S
+                            note = f"follower {self.spec.port} stopped answering: {self.error}"
+            if note is not None and self._session is not None:
+                self._session.stats.note(note)
             self._stop.wait(max(0.0, due - time.perf_counter()))
 
     def send_once(self) -> None:
@@ -311,21 +240,18 @@ class Follower:
         self.state = "catching up" if eased or self.max_gap_deg > max(TRACKING_GAP_DEG, step) else "tracking"
 
     def _reconnect(self) -> None:
-        """Try to reach a follower that stopped answering; from its present pose it eases in again."""
+        """Try to reach a follower that stopped answering (the bus lock held); from its present pose it eases in again."""
         robot = self.robot
         try:
-            if not robot.bus.is_connected:
-                robot.connect(calibrate=False)
+            if not robot.bus.is_connected:  # the port failed: the whole connect again, checked, one quick try
+                connect_arm(robot, self.words(), energises=True, patient=False)
             else:
                 robot.bus.enable_torque(num_retry=1)  # a servo that lost power comes back with torque off
             self._last = self._present()
         except Exception as exc:  # noqa: BLE001 - still away: try again later
-            self.error = first_line(exc) or type(exc).__name__
+            self.error = first_line(exc)
             if robot.bus.is_connected and not isinstance(exc, (ConnectionError, RuntimeError)):
-                try:
-                    robot.bus.port_handler.closePort()  # the port itself failed: reopen it next time
-                except Exception:  # noqa: BLE001
-                    pass
+                release(robot, torque_off=True)  # the port itself failed: torque off as far as it goes, reopen next time
             return
         self.state = "catching up"
 
@@ -360,35 +286,44 @@ class Follower:
 
     # -- the end ---------------------------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop sending, then disable torque and close the port (LeRobot's disconnect); safe to call again."""
+        """Stop sending, then disable torque and close the port; safe to call again, from any thread.
+
+        The thread's bus operation in flight (a send, a reconnect inside LeRobot's connect, each bounded by
+        LeRobot's timeouts) ends first; the lock then keeps it from starting another, so torque off is the
+        last word the arm hears.
+        """
         self._stop.set()
+        with self._bus_lock:
+            if self._closed:
+                return
+            self._closed = True
+            robot, self.robot = self.robot, None
+            logging.getLogger().removeFilter(self._filter)
+            if robot is None:
+                return
+            self.state = "disconnected"
+            release(robot, torque_off=True)  # every servo told, each on its own; the port closed
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=5.0)
-        if self._closed:
-            return
-        self._closed = True
-        robot, self.robot = self.robot, None
-        logging.getLogger().removeFilter(self._filter)
-        if robot is None:
-            return
-        self.state = "disconnected"
-        try:
-            if robot.bus.is_connected:
-                robot.disconnect()  # torque off on every servo (disable_torque_on_disconnect), then the port closes
-        except Exception as exc:  # noqa: BLE001 - an unplugged arm cannot be told; close the port anyway
-            self.error = first_line(exc) or type(exc).__name__
-            try:
-                robot.bus.port_handler.closePort()
-            except Exception:  # noqa: BLE001
-                pass
+            thread.join(timeout=5.0)  # it only has to see the stop: no bus operation is left to it
 
 
-def open_follower(text: str, session: Session) -> Follower:
-    """Parse a `--follower` value, check it mirrors this session's robot, connect, and start following."""
+def open_follower(text: str, session: Session, devices: str | None = None) -> Follower:
+    """Parse a `--follower` value, check it mirrors this session's robot, connect, and start following.
+
+    `devices`: the session's `--device` words; the `map=` of a leader among them driving the same arm is the
+    follower's map when it has none of its own. A fault, Ctrl-C or SIGTERM before this returns: torque off.
+    """
     spec = parse_follower_spec(text)
     check_pairing(spec, session.robot.name)
     follower = Follower(spec, rate_hz=session.control_hz)
-    follower.open(session.controller.joint_names(0))
-    follower.follow(session)
+    leader_map = leader_map_of(devices, follower.arm, session.controller.n_arms)
+    try:
+        follower.open(session.controller.joint_names(0), leader_map)
+        follower.follow(session)
+    except BaseException:
+        _, interrupted = shielded(follower.close)
+        if interrupted:
+            raise KeyboardInterrupt from None
+        raise
     return follower

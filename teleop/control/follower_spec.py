@@ -1,9 +1,12 @@
 """What `--follower` names, and how the simulated arm's joint targets become a follower's numbers (issue 47).
 
-`TYPE:PORT[:id=NAME][:calibration=DIR][:max_step=DEG]` is parsed here, with no serial port opened and no
-LeRobot loaded, so a bad flag stops a command in one line before anything starts; the motor map is the paired
-leader's joint map file (devices/leader_maps) inverted, so a leader and a follower agree on every joint angle.
-The follower itself (its thread, LeRobot's `SOFollower`) is teleop/control/follower.py.
+`TYPE:PORT[:id=NAME][:calibration=DIR][:map=FILE][:max_step=DEG]` is parsed here, with no serial port opened
+and no LeRobot loaded, so a bad flag (a `map=` file that does not exist included) stops a command in one line
+before anything starts. The motor map is a leader's joint map inverted, so a leader and a follower agree on
+every joint angle: the follower's own `map=FILE`, else the `map=` of the SO-10x leader that drives the same arm
+(`leader_map_of`: a user who flipped a joint's sign for their leader has the follower flip it back), else the
+paired leader type's map in devices/leader_maps. The follower itself (its thread, LeRobot's `SOFollower`) is
+teleop/control/follower.py.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from devices.base import DeviceError
+from devices.leader_connect import LEADER_TYPES, UNITS, LeaderError, parse_leader_spec
 from devices.joint_map import GripperRule, JointMap, JointMapError, JointRule, builtin_map_path, load_joint_map
 from scenes.numbers import number_or_nan
 from teleop.errors import UsageError
@@ -22,7 +26,7 @@ from teleop.errors import UsageError
 # follower type -> (the simulated robot it mirrors, the leader type whose joint map it shares)
 FOLLOWERS: dict[str, tuple[str, str]] = {"so101_follower": ("so101", "so101_leader")}
 DEFAULT_MAX_STEP_DEG = 5.0  # degrees per tick
-SPEC_KEYS = ("id", "calibration", "max_step")
+SPEC_KEYS = ("id", "calibration", "map", "max_step")
 
 
 @dataclass(frozen=True)
@@ -34,6 +38,7 @@ class FollowerSpec:
     id: str | None = None
     calibration: Path | None = None
     max_step_deg: float = DEFAULT_MAX_STEP_DEG
+    map: Path | None = None  # the joint map (degrees) to invert; None: the driving leader's, else the built-in
 
     @property
     def robot(self) -> str:
@@ -48,7 +53,7 @@ class FollowerSpec:
 
 
 def parse_follower_spec(text: str) -> FollowerSpec:
-    """`TYPE:PORT[:id=NAME][:calibration=DIR][:max_step=DEG]`; a UsageError (one line) names what is wrong."""
+    """`TYPE:PORT[:id=NAME][:calibration=DIR][:map=FILE][:max_step=DEG]`; a UsageError (one line) names what is wrong."""
     kind, _, rest = text.partition(":")
     kind = kind.strip().lower()
     if kind not in FOLLOWERS:
@@ -69,7 +74,10 @@ def parse_follower_spec(text: str) -> FollowerSpec:
         if not (math.isfinite(max_step) and 0 < max_step <= 90):
             raise UsageError(f"--follower {text}: max_step must be degrees per tick, more than 0 and at most 90")
     calibration = Path(options["calibration"]).expanduser() if "calibration" in options else None
-    return FollowerSpec(kind, parts[0].strip(), options.get("id"), calibration, max_step)
+    map_path = Path(options["map"]).expanduser() if "map" in options else None
+    if map_path is not None and not map_path.is_file():  # never the built-in quietly in its place
+        raise UsageError(f"--follower {text}: map={map_path}: no such joint map file")
+    return FollowerSpec(kind, parts[0].strip(), options.get("id"), calibration, max_step, map_path)
 
 
 def check_pairing(spec: FollowerSpec, robot_name: str) -> None:
@@ -114,12 +122,36 @@ def default_leader_map(leader: str, joint_names: tuple[str, ...]) -> JointMap:
                     gripper=GripperRule("gripper", 0.0, 100.0), leader=leader)
 
 
-def motor_map(spec: FollowerSpec, joint_names: tuple[str, ...]) -> MotorMap:
-    """The follower's map for the simulated arm's joints: the paired leader's map file, inverted."""
+def leader_map_of(devices: str | None, arm: int = 0, n_arms: int = 1) -> Path | None:
+    """The `map=FILE` of the SO-10x leader among the `--device` words that drives `arm`, or None.
+
+    A Koch leader's map reads -100..100 of another arm: a follower keeps its own. A leader word that does not
+    parse gives None here: the leader itself says what is wrong when it opens.
+    """
+    for word in (devices or "").split(","):
+        kind, _, arg = word.strip().partition(":")
+        kind = kind.strip().lower()
+        if kind not in LEADER_TYPES or UNITS[kind] != "degrees":
+            continue
+        try:
+            spec = parse_leader_spec(kind, arg, n_arms)
+        except LeaderError:
+            continue
+        if spec.arm == arm and spec.map is not None:
+            return spec.map
+    return None
+
+
+def motor_map(spec: FollowerSpec, joint_names: tuple[str, ...], leader_map: Path | None = None) -> MotorMap:
+    """The follower's map for the simulated arm's joints, inverted: its own `map=`, else the driving leader's
+    (`leader_map`), else the paired leader type's file."""
     leader = FOLLOWERS[spec.kind][1]
-    path = builtin_map_path(leader)
+    path = spec.map or leader_map or builtin_map_path(leader)
     try:
-        joint_map = load_joint_map(path) if path.is_file() else default_leader_map(leader, joint_names)
+        if spec.map is None and leader_map is None and not path.is_file():
+            joint_map = default_leader_map(leader, joint_names)
+        else:
+            joint_map = load_joint_map(path)  # a file that is not there: one line, never the built-in in its place
     except JointMapError as exc:
         raise DeviceError(str(exc)) from None
     if joint_map.units != "degrees":
