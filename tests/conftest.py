@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import contextlib
 import functools
 import os
 import re
@@ -10,6 +11,7 @@ import select
 import shutil
 import signal
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -236,12 +238,20 @@ def pytest_configure(config: pytest.Config) -> None:
     from tests.suite_time import SuiteClock
 
     config.pluginmanager.register(SuiteClock(config), "teleop-suite-clock")
+    WARM.say = functools.partial(_say_past_capture, config)
     runs_tests = hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None)
     if runs_tests and "RAY_TMPDIR" not in os.environ:
         os.environ["RAY_TMPDIR"] = config.stash[RAY_TMPDIR] = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
 
 
 RAY_TMPDIR = pytest.StashKey[str]()
+
+
+def _say_past_capture(config: pytest.Config, line: str) -> None:
+    """One line on the test run's stderr even from inside a test (pytest captures its output): the warm process's."""
+    capture = config.pluginmanager.getplugin("capturemanager")
+    with capture.global_and_fixture_disabled() if capture is not None else contextlib.nullcontext():
+        print(line, file=sys.stderr, flush=True)
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

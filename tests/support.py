@@ -230,6 +230,27 @@ class SmallFs:
             resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
             signal.signal(signal.SIGXFSZ, old_handler)
 
+    @contextlib.contextmanager
+    def full(self, growing: Path):
+        """In this process, while the block runs: no room for `growing` (a file being written) to grow. On a tmpfs a
+        filler file takes the free space (removed after); otherwise the file size limit is `growing`'s size now.
+        For a test whose premise is what was written first (a flush seen on disk) and only then a full disk."""
+        if self.file_limit is not None:
+            with SmallFs(self.path, growing.stat().st_size).limited():
+                yield
+            return
+        filler = self.path / "filler.bin"
+        with open(filler, "wb", buffering=0) as f:
+            try:
+                while True:
+                    f.write(bytes(4096))
+            except OSError:  # ENOSPC: full
+                pass
+        try:
+            yield
+        finally:
+            filler.unlink()
+
 
 @contextlib.contextmanager
 def small_fs(tmp_path: Path, tmpfs_kb: int, file_limit: int):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support import CAUSES, ROOT, SmallFs, run_cli, run_json, small_fs
+from tests.support import CAUSES, ROOT, SmallFs, run_cli, run_json, small_fs, wait_until
 
 SCRIPT = ROOT / "scenes" / "scripts" / "lift_pick.json"  # 144 steps; one episode is ~135 KB MCAP, ~600 KB HDF5
 FAILED_FILE = re.compile(r"(/\S+/episode_(\d{6})\.(mcap|hdf5)): ")
@@ -100,22 +100,35 @@ def test_run_on_a_full_disk_stops_with_one_line_and_keeps_every_episode(tmp_path
 
 
 def test_hdf5_cut_file_keeps_its_flushed_rows_and_an_honest_count(tmp_path):
-    """A write that fails half way leaves the HDF5 file as it was at its last flush, num_samples included."""
+    """A write that fails half way leaves the HDF5 file as it was at its last flush, num_samples included.
+
+    The premise, a flush before the disk fills, is made to hold whatever the machine's speed: the disk fills only
+    once rows are seen flushed (a quick machine once filled a fixed small disk before the first flush)."""
     import h5py
 
     from recorder import RecorderError
     from teleop import Recorder, Session
     from teleop.control.loop import run_episode
 
-    # Room for the file's first 256-row chunks, not for the next ones.
-    with small_fs(tmp_path, 1000, 1_000_000) as fs:
+    def flushed_rows(path: Path) -> int:
+        """num_samples as the file on disk says it (0 while the first flush is under way)."""
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                return int(f["data/demo_0"].attrs["num_samples"])
+        except (OSError, KeyError):
+            return 0
+
+    with small_fs(tmp_path, 1000, 1_000_000) as fs:  # room for the file's first 256-row chunks (~470 KB)
         session = Session()
-        Recorder(session, fs.path, ("hdf5",), verify="off")
-        with fs.limited(), pytest.raises(RecorderError) as failed:
-            run_episode(session, [], max_steps=5000)  # flat out: rows reach the file every 0.5 s
+        recorder = Recorder(session, fs.path, ("hdf5",), verify="off")
+        recorder.start()
+        path = fs.path / "episode_000000.hdf5"
+        run_episode(session, [], max_steps=30, record=False)  # the writer's first flush takes what is there
+        wait_until(lambda: flushed_rows(path) > 0, 60, "rows to reach the file")
+        with fs.full(path), pytest.raises(RecorderError) as failed:
+            run_episode(session, [], max_steps=5000, record=False)  # flat out: rows reach the file every 0.5 s
         message = str(failed.value)
         assert "\n" not in message and "episode_000000.hdf5" in message and any(c in message for c in CAUSES), message
-        path = fs.path / "episode_000000.hdf5"
         with h5py.File(path, "r") as f:
             demo = f["data/demo_0"]
             n = int(demo.attrs["num_samples"])

@@ -44,12 +44,16 @@ def sources(tmp_path_factory) -> list[Path]:
     return paths
 
 
+FILL_CAP = 64 << 20  # bytes: the small file systems are a few hundred kB; never fill a real disk
+
+
 def fill(directory: Path, leave: int = 0) -> Path:
-    """Fill the file system under `directory` until a write fails (leaving about `leave` bytes)."""
+    """Fill the file system under `directory` until a write fails (leaving about `leave` bytes); at most FILL_CAP
+    bytes, so that a run where the small file system fell back to a size limit never fills the machine's disk."""
     filler = directory / "filler.bin"
     with open(filler, "wb", buffering=0) as f:
         try:
-            while True:
+            while f.tell() < FILL_CAP:
                 f.write(b"\0" * 4096)
         except OSError:
             pass
