@@ -16,19 +16,35 @@
 #   4. `lerobot-train` ACT with the hyper-parameters below, on DEVICE (cpu; cuda where there is one): a constant
 #      learning rate of 1e-4 (pick_place, stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
 #      averages its chunks' predictions for each tick with weights exp(-C i), i = 0 the oldest (ACT's temporal
-#      ensembling; C = 0.01, pick_place and stack 0.1); 18,000 steps (handover 9,000); dropout P in the transformer (default none, see below);
+#      ensembling; C = 0.01, pick_place and stack 0.1); 11,000 steps (pick_place and stack 18,000, handover 9,000); dropout P
+#      in the transformer (default none, see below);
 #   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json), each episode
 #      failed after T simulated seconds (--max-seconds, default 20 as in `teleop eval`).
 # Prints one JSON object on stdout: task, demos, sources, humanlike, images, action, lr, schedule, ensemble, dropout, drop_idle, steps,
 # train_seconds, success_rate, ci95, failure_breakdown. Progress and the tools' logs go to stderr. Steps already done in
 # WORK with the same settings are not redone; a step whose settings changed is redone, with every step after it.
-set -euo pipefail
+# Environment: DEMOS, STEPS, SOURCES, EPISODES change those defaults (the options win); E2E_DIR is where the default
+# WORK is made (out/e2e); BATCH (64) and WORKERS (2) are lerobot-train's; DEVICE, PYTHON, TELEOP, LEROBOT_TRAIN.
+# The whole script is one block, read before any of it runs: a run takes ~25 min, and bash reads a plain script as it
+# goes, so an edit of this file meanwhile (a checkout updated, a setting changed) would run half of each version.
+{
+set -Eeuo pipefail
 usage="usage: bench/train_eval.sh TASK [--demos N] [--steps N] [--sources K] [--humanlike] [--images] [--action MODE] [--lr LR] [--schedule constant|cosine] [--ensemble C] [--dropout P] [--keep-idle] [--episodes N] [--max-seconds T] [--work DIR]"
-task=${1:?$usage}
+# Any failure ends with one line on stderr naming the step (after the failing tool's own words): a command that
+# fails (the ERR trap; -E carries it into functions, and a subshell's failure is named once, by its parent),
+# an option or setting refused (fail), or a stop by a signal (the EXIT trap, when nothing was said).
+task="" step="setup" said=0
+fail() { echo "train_eval.sh${task:+ [$task]}: $1" >&2; said=1; exit "${2:-2}"; }
+trap 'rc=$?; if [ "$BASH_SUBSHELL" = 0 ]; then said=1
+    echo "train_eval.sh [$task]: $step failed (exit $rc, line $LINENO: $BASH_COMMAND)" >&2; fi' ERR
+trap 'rc=$?; [ $rc = 0 ] || [ $said = 1 ] || echo "train_eval.sh [$task]: stopped during $step (exit $rc)" >&2' EXIT
+trap 'exit 130' INT; trap 'exit 143' TERM  # so that a Ctrl-C or a kill goes through the EXIT trap's line too
+[ $# -gt 0 ] && [[ "$1" != -* ]] || fail "a TASK comes first ($usage)"
+task=$1
 shift
-demos=""
-steps=""
-sources=3
+demos=${DEMOS:-}  # DEMOS, STEPS, SOURCES, EPISODES: the counts' defaults from the environment (the options win)
+steps=${STEPS:-}
+sources=${SOURCES:-3}
 humanlike=0
 images=0
 drop_idle=1
@@ -37,27 +53,32 @@ lr=""
 schedule=""
 ensemble=""
 dropout=0
-episodes=50
+episodes=${EPISODES:-50}
 max_seconds=20
 work=""
 while [ $# -gt 0 ]; do
     case "$1" in
-        --demos) demos=${2:?$usage}; shift 2 ;;
-        --steps) steps=${2:?$usage}; shift 2 ;;
-        --sources) sources=${2:?$usage}; shift 2 ;;
-        --humanlike) humanlike=1; shift ;;
-        --images) images=1; shift ;;
-        --keep-idle) drop_idle=0; shift ;;
-        --action) action=${2:?$usage}; shift 2 ;;
-        --lr) lr=${2:?$usage}; shift 2 ;;
-        --schedule) schedule=${2:?$usage}; shift 2 ;;
-        --ensemble) ensemble=${2:?$usage}; shift 2 ;;
-        --dropout) dropout=${2:?$usage}; shift 2 ;;
-        --episodes) episodes=${2:?$usage}; shift 2 ;;
-        --max-seconds) max_seconds=${2:?$usage}; shift 2 ;;
-        --work) work=${2:?$usage}; shift 2 ;;
-        *) echo "train_eval.sh: unknown option $1 ($usage)" >&2; exit 2 ;;
+        --humanlike) humanlike=1; shift; continue ;;
+        --images) images=1; shift; continue ;;
+        --keep-idle) drop_idle=0; shift; continue ;;
+        --demos|--steps|--sources|--action|--lr|--schedule|--ensemble|--dropout|--episodes|--max-seconds|--work)
+            [ $# -ge 2 ] || fail "$1 takes a value ($usage)" ;;
+        *) fail "unknown option $1 ($usage)" ;;
     esac
+    case "$1" in
+        --demos) demos=$2 ;;
+        --steps) steps=$2 ;;
+        --sources) sources=$2 ;;
+        --action) action=$2 ;;
+        --lr) lr=$2 ;;
+        --schedule) schedule=$2 ;;
+        --ensemble) ensemble=$2 ;;
+        --dropout) dropout=$2 ;;
+        --episodes) episodes=$2 ;;
+        --max-seconds) max_seconds=$2 ;;
+        --work) work=$2 ;;
+    esac
+    shift 2
 done
 case "$task" in
     lift) script=lift_pick.json ;;
@@ -76,14 +97,20 @@ esac
 # success 0.52), without it the loss reached 0.010 and the success 0.98, and a step costs a third less compute.
 # pick_place learns the same way: lift's settings (joint targets, 200 demos, 1e-4, C = 0.01) gave 0.38 without
 # dropout (23 passes over each frame; 15 timeouts, 13 still holding the cube at the end), stack's gave 0.98.
-# 18,000 steps keep a training under 30 min on 2 cores in the machine's slow state (the data workers are then the
-# bottleneck: ~10.6 steps/s, against 14-15 on its faster days).
+# pick_place and stack train 18,000 steps: 27.9-29.5 min on 2 cores in the machine's slow state (the data workers are then
+# the bottleneck: ~10.6 steps/s, against 14-15 on its faster days). lift and the other joint-target tasks train 11,000:
+# the whole run as the README prints it (sources, 200 generated, export, training, 50 evaluated) must stay within
+# 30 min on 2 cores, and 18,000 steps alone took 1,954 s there (2026-11-28); 11,000 at that rate are ~1,200 s, the
+# run ~23 min by the figures in docs/learning.md ("What a run costs", an estimate). 18,000 steps lifted the cube in 50
+# of 50 (2026-11-26 and 2026-11-28), 10,000 in 45 and 50 of 50 from human-like sources (docs/speed.md, the learning
+# curve).
 # handover (two arms) gets 9,000: its data workers feed 6-8 steps/s (62,325 frames of 14-D state and action from
 # 200 episodes of ~310 frames), against lift's 10.6-15, so 18,000 steps would take 40-55 min; 9,000 took 20.6 min
 # (2026-11-26) and the policy succeeded on 50 of 50 new seeds.
 case "$task" in
     handover) steps=${steps:-9000} ;;
-    *) steps=${steps:-18000} ;;
+    stack|pick_place) steps=${steps:-18000} ;;
+    *) steps=${steps:-11000} ;;
 esac
 case "$task" in  # the task's defaults, for what the options leave unset
     stack|pick_place) defaults=(ee_pose 2000 3e-4 cosine 0.1) ;;
@@ -91,25 +118,32 @@ case "$task" in  # the task's defaults, for what the options leave unset
 esac
 action=${action:-${defaults[0]}} demos=${demos:-${defaults[1]}} lr=${lr:-${defaults[2]}}
 schedule=${schedule:-${defaults[3]}} ensemble=${ensemble:-${defaults[4]}}
-case "$action" in joint|ee_pose|ee_delta) ;; *) echo "train_eval.sh: --action must be joint, ee_pose or ee_delta" >&2; exit 2 ;; esac
-case "$schedule" in constant|cosine) ;; *) echo "train_eval.sh: --schedule must be constant or cosine" >&2; exit 2 ;; esac
-[[ "$lr" =~ ^[0-9.]+(e-?[0-9]+)?$ ]] || { echo "train_eval.sh: --lr must be a number, such as 1e-4" >&2; exit 2; }
-[[ "$dropout" =~ ^(0(\.[0-9]*)?|\.[0-9]+)$ ]] || { echo "train_eval.sh: --dropout must be a number from 0 to below 1, such as 0.1" >&2; exit 2; }
+case "$action" in joint|ee_pose|ee_delta) ;; *) fail "--action must be joint, ee_pose or ee_delta" ;; esac
+case "$schedule" in constant|cosine) ;; *) fail "--schedule must be constant or cosine" ;; esac
+[[ "$lr" =~ ^[0-9.]+(e-?[0-9]+)?$ ]] || fail "--lr must be a number, such as 1e-4"
+[[ "$dropout" =~ ^(0(\.[0-9]*)?|\.[0-9]+)$ ]] || fail "--dropout must be a number from 0 to below 1, such as 0.1"
 [[ "$max_seconds" =~ ^([0-9]+(\.[0-9]*)?|\.[0-9]+)$ ]] && [[ ! "$max_seconds" =~ ^[0.]+$ ]] \
-    || { echo "train_eval.sh: --max-seconds must be simulated seconds above 0, such as 20" >&2; exit 2; }
-[[ "$ensemble" =~ ^-?[0-9.]+(e-?[0-9]+)?$ ]] || { echo "train_eval.sh: --ensemble must be a number, such as 0.01" >&2; exit 2; }
+    || fail "--max-seconds must be simulated seconds above 0, such as 20"
+[[ "$ensemble" =~ ^-?[0-9.]+(e-?[0-9]+)?$ ]] || fail "--ensemble must be a number, such as 0.01"
 for n in "$demos" "$steps" "$sources" "$episodes"; do
-    [[ "$n" =~ ^[1-9][0-9]*$ ]] || { echo "train_eval.sh: --demos, --steps, --sources and --episodes take a whole number above 0, not '$n'" >&2; exit 2; }
+    [[ "$n" =~ ^[1-9][0-9]*$ ]] || fail "--demos, --steps, --sources and --episodes (DEMOS, STEPS, SOURCES, EPISODES) take a whole number above 0, not '$n'"
 done
 # Generated seeds run upward from here (a few more than N are tried), clear of the evaluation's 1000 and up.
 gen_seed=$(( demos > 500 ? (episodes > 1000 ? 1000 + episodes : 2000) : 100 ))
 root=$(cd "$(dirname "$0")/.." && pwd)
-[ -f "$root/scenes/scripts/$script" ] || { echo "train_eval.sh: no solving script scenes/scripts/$script for task $task" >&2; exit 2; }
+[ -f "$root/scenes/scripts/$script" ] || fail "no solving script scenes/scripts/$script for task $task"
 # The task file's first robot records, generates and evaluates (panda for the one-arm built-ins; bimanual for handover)
 robot=$(cd "$root" && "${PYTHON:-$root/.venv/bin/python}" -c "import sys; from scenes.tasks.registry import find_task; \
 r = find_task(sys.argv[1]).robots; print(r[0] if r else 'panda')" "$task" 2>/dev/null) \
-    || { echo "train_eval.sh: no task named $task" >&2; exit 2; }
-work=${work:-$root/out/e2e/$task-d$demos-s$sources$([ $humanlike = 1 ] && echo h)$([ $images = 1 ] && echo i)$([ $drop_idle = 0 ] && echo -keepidle)}
+    || fail "no task named $task"
+# The default WORK names the settings that make its data (no `$([ x ] && echo y)` in an assignment: under set -e
+# a false test there ends the script)
+if [ -z "$work" ]; then
+    work=${E2E_DIR:-$root/out/e2e}/$task-d$demos-s$sources
+    if [ $humanlike = 1 ]; then work+=h; fi
+    if [ $images = 1 ]; then work+=i; fi
+    if [ $drop_idle = 0 ]; then work+=-keepidle; fi
+fi
 device=${DEVICE:-cpu}
 python=${PYTHON:-$root/.venv/bin/python}
 teleop=${TELEOP:-$root/.venv/bin/teleop}
@@ -125,7 +159,9 @@ keys=("task=$task sources=$sources humanlike=$humanlike")
 keys+=("${keys[0]} demos=$demos seed=$gen_seed")
 keys+=("${keys[1]} action=$action images=$images drop_idle=$drop_idle")
 keys+=("${keys[2]} steps=$steps lr=$lr schedule=$schedule ensemble=$ensemble dropout=$dropout batch=${BATCH:-64} device=$device")
-keys+=("${keys[3]} episodes=$episodes$([ "$max_seconds" != 20 ] && echo " max_seconds=$max_seconds")")
+eval_key="${keys[3]} episodes=$episodes"
+if [ "$max_seconds" != 20 ]; then eval_key+=" max_seconds=$max_seconds"; fi  # as before --max-seconds: 20 s redoes nothing
+keys+=("$eval_key")
 steps_done=(src gen ds train eval)  # each step's name, and what it leaves in WORK when it is done:
 outputs=(src gen ds train_seconds eval.json)
 stale=0
@@ -140,6 +176,7 @@ mkdir -p settings
 done_step() { echo "${keys[$1]}" > "settings/${steps_done[$1]}"; }
 
 if [ ! -d src ]; then
+    step="recording the source demos"
     say "$sources source demos$([ $humanlike = 1 ] && echo ' (human-like)')"
     mkdir -p src.tmp
     for ((s = 0; s < sources; s++)); do
@@ -154,12 +191,14 @@ if [ ! -d src ]; then
     done_step 0
 fi
 if [ ! -d gen ]; then
+    step="generation"
     say "generating $demos demos"
     "$teleop" generate src --out gen.tmp --num "$demos" --seed "$gen_seed" --workers 2 >&2
     mv gen.tmp gen
     done_step 1
 fi
 if [ ! -d ds ]; then
+    step="export"
     say "exporting"
     idle=(); [ $drop_idle = 1 ] && idle=(--drop-idle)
     # PNG frames, not video: lerobot-train then reads a sample in milliseconds instead of seeking in an MP4
@@ -168,6 +207,7 @@ if [ ! -d ds ]; then
     done_step 2
 fi
 if [ ! -f train_seconds ]; then
+    step="training"
     say "training ACT for $steps steps on $device"
     optimizer=(--policy.optimizer_lr="$lr")  # ACT's own preset: AdamW, weight decay 1e-4, a constant rate
     if [ "$schedule" = cosine ]; then
@@ -197,11 +237,12 @@ if [ ! -f train_seconds ]; then
         --batch_size="${BATCH:-64}" --steps="$steps" --num_workers="${WORKERS:-2}" --wandb.enable=false --save_freq="$steps" \
         --log_freq=500 --output_dir="$work/train" 2>&1 | tr '\r' '\n' | sed -u -E 's/^Training:.*\](INFO )/\1/' \
         | grep --line-buffered -v "^Training:" >&2 || true
-    [ -d "$work/train/checkpoints/last/pretrained_model" ] || { echo "train_eval.sh: lerobot-train made no checkpoint" >&2; exit 1; }
+    [ -d "$work/train/checkpoints/last/pretrained_model" ] || fail "training failed: lerobot-train made no checkpoint" 1
     echo $(( $(date +%s) - t0 )) > train_seconds
     done_step 3
 fi
 if [ ! -f eval.json ]; then
+    step="evaluation"
     say "evaluating on seeds 1000-$((999 + episodes))"
     # One torch thread here too: two evaluations side by side (bench/learning_curve.py --jobs 2) each took
     # over 5 min with the default threads, against 50 s with one
@@ -211,6 +252,7 @@ if [ ! -f eval.json ]; then
     mv eval.json.tmp eval.json
     done_step 4
 fi
+step="the report"
 "$python" - "$task" "$demos" "$sources" "$humanlike" "$images" "$action" "$lr" "$schedule" "$ensemble" "$dropout" "$drop_idle" "$steps" "$(cat train_seconds)" <<'EOF'
 import json, sys
 task, demos, sources, humanlike, images, action, lr, schedule, ensemble, dropout, drop_idle, steps, seconds = sys.argv[1:]
@@ -221,3 +263,5 @@ print(json.dumps({
     "failure_breakdown": report.get("failure_breakdown", {}),
 }))
 EOF
+exit
+}

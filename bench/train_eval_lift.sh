@@ -6,8 +6,11 @@
 # default 256; chunks of 30 actions, 1 s) for STEPS steps on
 # this machine's CPU or GPU -> `teleop eval` on seeds 1000-1049. Prints the eval's JSON last; the
 # training time is in WORKDIR/train_seconds.
-set -euo pipefail
-work=${1:?usage: bench/train_eval_lift.sh WORKDIR [STEPS] [DEMOS]}
+set -Eeuo pipefail
+# A failing step ends the script with one line on stderr naming it (after the tool's own words)
+trap 'rc=$?; [ "$BASH_SUBSHELL" != 0 ] || echo "train_eval_lift.sh: failed (exit $rc, line $LINENO: $BASH_COMMAND)" >&2' ERR
+[ $# -ge 1 ] || { echo "train_eval_lift.sh: usage: bench/train_eval_lift.sh WORKDIR [STEPS] [DEMOS]" >&2; exit 2; }
+work=$1
 steps=${2:-2000}
 demos=${3:-200}
 device=${DEVICE:-cpu}
