@@ -24,7 +24,7 @@ Figures (`measure`):
                          Chromium draws WebGL in software on the page's main thread, where keys wait
                          for the frame in progress; this is the input path without that. (With the
                          view shown the page gets teleop's software-WebGL view, as any browser without
-                         a GPU does: teleop/web/session_page/view_quality.py)
+                         a GPU does: teleop/web/shared/view_quality.py)
 
 The browser figures need a system Chromium and Playwright (skipped, with a note, otherwise).
 Moving the arm without a person: the session also runs a script device that sweeps the target.
@@ -80,7 +80,7 @@ def update_cost_ms(updates: int) -> float:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    install()  # viser's patches, as an app's start installs them (teleop.web.shared.access.start_guarded)
+    install()  # viser's patches, as an app's start installs them (teleop.web.viser_internals.guarded_start.start_guarded)
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
     page = connect(f"ws://127.0.0.1:{port}", subprotocols=[WEBSOCKET_PROTOCOL], max_size=None)
 

@@ -326,7 +326,8 @@ def drag_gizmo_axis(page, target_pos, target_quat, axis: int = 0, pixels: float 
     """Grab the gizmo's `axis` arrow (in the target's frame) and drag it `pixels` along its screen direction."""
     import mujoco
 
-    from teleop.web.session_page.drawing import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION, GIZMO_SCALE
+    from teleop.web.session_page.drawing import GIZMO_SCALE
+    from teleop.web.shared.camera_markers import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION
 
     rot = np.empty(9)
     mujoco.mju_quat2Mat(rot, np.asarray(target_quat, dtype=float))

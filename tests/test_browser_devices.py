@@ -244,7 +244,7 @@ def test_phone_with_webxr_maps_forward_to_world_x_and_rejects_bad_poses():
 def test_device_messages_out_of_range_are_rejected_with_a_reason(message, why):
     import json
 
-    from teleop.web.session_page.input_messages import Rejected, parse
+    from teleop.web.shared.input_messages import Rejected, parse
 
     with pytest.raises(Rejected, match=why):
         parse(json.dumps(message))
@@ -252,7 +252,7 @@ def test_device_messages_out_of_range_are_rejected_with_a_reason(message, why):
 
 def test_a_page_that_goes_away_lets_go_of_its_pad_phone_and_spacemouse():
     from devices.phone import PhoneDevice
-    from teleop.web.session_page.input_messages import Gamepad, Hid, HidConnect, Phone
+    from teleop.web.shared.input_messages import Gamepad, Hid, HidConnect, Phone
     from teleop.web.session_page.page_devices import PageInputs
 
     pad, phone, mouse = GamepadDevice(), PhoneDevice(), WebHidSpaceMouse(deadzone=0.0)

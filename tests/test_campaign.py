@@ -77,9 +77,17 @@ def test_two_operators_record_apart_and_faults_stay_in_their_session(tmp_path):
             t.join()
         assert [answers[n][0] for n in ("ana", "bo")] == [200, 200], (answers, campaign.log())
         ana, bo = answers["ana"][1], answers["bo"][1]
-        assert set(ana) >= {"operator", "task", "instruction", "url", "token", "input"}
+        assert set(ana) >= {"operator", "task", "instruction", "url", "xr", "token", "input"}
         assert (ana["operator"], ana["task"], ana["instruction"]) == ("ana", "lift", "Pick up the red cube and lift it.")
         assert ana["token"] != bo["token"] and urlsplit(ana["url"]).port != urlsplit(bo["url"]).port
+
+        # The join answer offers the session's XR page (a headset's browser opens it), under the session's token.
+        xr = urlsplit(ana["xr"])
+        conn = http.client.HTTPConnection("127.0.0.1", xr.port, timeout=30)
+        conn.request("GET", f"{xr.path}?{xr.query}")
+        page = conn.getresponse()
+        assert xr.port == urlsplit(ana["url"]).port and page.status == 200 and b"Enter VR" in page.read()
+        conn.close()
 
         # One operator's token opens no other session: neither its page nor its input websocket.
         bo_port = urlsplit(bo["url"]).port

@@ -26,7 +26,7 @@ from teleop.learn.gym_env import TeleopEnv
 from teleop.control.loop import run_episode
 from teleop.learn.policy import PolicyMismatch, ScriptedPolicy
 from teleop.learn.takeover import Takeover, moves_arm
-from teleop.web.session_page.app import STATUS_PERIOD_S
+from teleop.web.session_page.serve_options import DEFAULT_STATUS_PERIOD_S
 from teleop.web.session_page.panel import PanelDevice
 from tests.browser import free_port
 from tests.support import ROOT, assert_one_line_error, run_cli
@@ -209,7 +209,7 @@ def test_dragging_the_gizmo_in_the_browser_takes_over_and_the_recording_says_so(
             # Where the operator left it: the drag's last pointer moves may land after the first status past +3 cm.
             moved = server.status()
             for _ in range(40):  # until two statuses a status period apart agree
-                time.sleep(2 * STATUS_PERIOD_S)
+                time.sleep(2 * DEFAULT_STATUS_PERIOD_S)
                 now = server.status()
                 if now["target_pos"] == moved["target_pos"]:
                     break

@@ -304,14 +304,14 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
     import numpy as np
     from viser._assignable_props_api import AssignablePropsBase
 
-    from teleop.web.viser_internals.casts import FLOAT_ARRAY_HINTS, quick_array_casts
+    from teleop.web.viser_internals.casts import FLOAT_ARRAY_HINTS, install_quick_array_casts
 
     original = getattr(AssignablePropsBase._cast_value_recursive, "original", AssignablePropsBase._cast_value_recursive)
     source = inspect.getsource(original)
     for name in ("float16", "float32", "float64"):
         assert f"npt.NDArray[np.{name}]" in source, broken(
             f"AssignablePropsBase._cast_value_recursive no longer special-cases npt.NDArray[np.{name}]",
-            "quick_array_casts (scene updates would cast differently from viser)")
+            "install_quick_array_casts (scene updates would cast differently from viser)")
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
         axes = server.scene.add_batched_axes("/c", batched_wxyzs=np.tile([1.0, 0, 0, 0], (2, 1)),
@@ -319,8 +319,8 @@ def test_quick_array_casts_cast_as_viser_does_and_scene_handles_take_them():
         values = [np.arange(6.0).reshape(2, 3), [[1, 2, 3]], (0.5, 0.25, 0.125, 1.0), (np.ones(2), np.zeros(2))]
         hints = [*FLOAT_ARRAY_HINTS, tuple[float, ...], tuple[np.ndarray, ...], int]
         expected = [[original(axes, h, v, "batched_positions") for v in values] for h in hints]
-        quick_array_casts()
-        quick_array_casts()  # once per process: a second call keeps the first wrapper
+        install_quick_array_casts()
+        install_quick_array_casts()  # once per process: a second call keeps the first wrapper
         cast = AssignablePropsBase._cast_value_recursive
         assert getattr(cast, "quick", False) and cast.original is original
         for h, row in zip(hints, expected):

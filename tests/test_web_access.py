@@ -22,9 +22,8 @@ from websockets.http11 import Request
 from websockets.datastructures import Headers
 
 from teleop.errors import UsageError
-from teleop.web.shared.access import (
-    TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token, with_head_script,
-)
+from teleop.web.shared.access import TOKEN_ENV, TOKEN_PATTERN, Gate, resolve_token, same_origin, url_with_token
+from teleop.web.viser_internals.serving_hooks import with_head_script
 from tests import browser as headless
 from tests.support import assert_one_line_error, run_cli
 
@@ -76,6 +75,8 @@ def test_the_gate_reads_the_token_from_the_query_or_the_port_s_cookie():
     assert Gate(None, 8123).allows(_request("/"))
     assert url_with_token("http://127.0.0.1:8080", "abc-def-gh") == "http://127.0.0.1:8080/?token=abc-def-gh"
     assert url_with_token("http://127.0.0.1:8080", None) == "http://127.0.0.1:8080"
+    # a page of its own keeps its path as served (the server answers `/phone`, not `/phone/`)
+    assert url_with_token("http://127.0.0.1:8080/phone", "abc-def-gh") == "http://127.0.0.1:8080/phone?token=abc-def-gh"
 
 
 def test_cross_origin_pages_are_told_apart():

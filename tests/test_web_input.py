@@ -13,9 +13,9 @@ from websockets.asyncio.client import connect
 from websockets.asyncio.server import serve
 
 from devices.keyboard import KEY_ACTION, KeyState
-from teleop.web.session_page import input_channel
-from teleop.web.session_page.input_channel import BURST, MAX_FRAME, PATH, QUIET_S, InputChannel
-from teleop.web.session_page.input_messages import (
+from teleop.web.shared import input_channel
+from teleop.web.shared.input_channel import BURST, MAX_FRAME, PATH, QUIET_S, InputChannel
+from teleop.web.shared.input_messages import (
     MAX_BYTES, Hello, Key, Rejected, ReleaseAll, View, binding_name, browser_keys, parse,
 )
 from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from teleop.web.session_page.input_channel import PATH, QUIET_S
+from teleop.web.shared.input_channel import PATH, QUIET_S
 from tests import browser as headless
 
 PAGE_SIZE = (480, 320)  # software WebGL: the fewer pixels, the sooner the page handles a key
@@ -283,7 +283,7 @@ GPU_RENDERER = """
 
 def test_a_browser_drawing_in_software_gets_the_cheap_view_and_others_keep_viser_s(page, server, browser):
     """Headless Chromium draws WebGL with SwiftShader: the page draws at half resolution and gets no shadows or
-    environment map (teleop/web/session_page/view_quality.py); a page that reports a GPU renderer keeps viser's look."""
+    environment map (teleop/web/shared/view_quality.py); a page that reports a GPU renderer keeps viser's look."""
     # this module's one page left (an earlier test's second page may still be closing), counted as software
     server.wait_for(lambda s: s["clients"] == 1 and s["software_views"] == 1, what="the page to report software WebGL")
     page.get_by_text("1 drawing without a GPU", exact=False).first.wait_for(state="attached", timeout=60_000)

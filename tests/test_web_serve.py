@@ -71,7 +71,7 @@ def canvas_pixels(page, path: Path) -> tuple[np.ndarray, dict, np.ndarray]:
 
 
 def test_page_shows_the_robot(page, tmp_path):
-    from teleop.web.session_page.drawing import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION
+    from teleop.web.shared.camera_markers import CAMERA_FOV, CAMERA_LOOK_AT, CAMERA_POSITION
 
     shot = tmp_path / "page.png"
     deadline = time.monotonic() + 40  # software WebGL: the meshes take a while to appear

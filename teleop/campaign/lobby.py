@@ -1,7 +1,7 @@
 """The lobby: where operators join a campaign and the admin watches it (stdlib HTTP, one port).
 
     GET  /join?token=J          the join page (an invite token opens it with the name filled in)
-    POST /api/join?token=J      {"name": ...} -> 200 {"operator", "task", "instruction", "url", "token", "input"}
+    POST /api/join?token=J      {"name": ...} -> 200 {"operator", "task", "instruction", "url", "xr", "token", "input"}
                                 202 {"queue": place} beyond max_sessions (ask again to keep the place)
     GET  /admin?token=A         the admin page (sessions live, quotas, the queue; end, pause, resume)
     GET  /api/status?token=A    the same as JSON
@@ -33,7 +33,7 @@ from teleop.campaign.file import Campaign, CampaignTask, check_operator_name
 from teleop.campaign.ledger import count_task, hourly_successes, invited, load_invites
 from teleop.campaign.sessions import LiveSession, Sessions
 from teleop.web.shared.access import Gate
-from teleop.web.session_page.input_channel import PATH as INPUT_PATH
+from teleop.web.shared.input_messages import PATH as INPUT_PATH
 from teleop.web.shared.stdlib_http import STYLESHEET_PATH, GatedHandler, QuietServer, Refused, TokenRefused
 
 MAX_BODY = 4096  # bytes of a request body
@@ -165,7 +165,7 @@ class Lobby:
         base = f"{session.url_host(host)}:{session.port}"
         token = quote(spec.token, safe="")
         return {"operator": spec.operator, "task": task.name, "instruction": task.instruction,
-                "url": f"http://{base}/?token={token}", "token": spec.token,
+                "url": f"http://{base}/?token={token}", "xr": f"http://{base}/xr?token={token}", "token": spec.token,
                 "input": f"ws://{base}{INPUT_PATH}?token={token}", "session": spec.session}
 
     # -- admin -------------------------------------------------------------------

@@ -29,7 +29,7 @@ from teleop.control.recording import Recorder
 from teleop.control.session_setup import open_session_devices
 
 DEVICES = ("gizmo", *BROWSER_DEVICES)  # what a remote operator's browser can drive; keys come by the page
-STATUS_PERIOD_S = 0.5  # s between status writes: the lobby's admin page and /api/status read them
+LOBBY_STATUS_PERIOD_S = 0.5  # s between a campaign session's status writes: the lobby's admin page and /api/status read them
 
 
 def read_spec() -> SessionSpec:
@@ -81,7 +81,7 @@ def run(spec: SessionSpec, stop: threading.Event) -> int:
     gc.freeze()
     try:
         options = ServeOptions(host=spec.host, port=spec.port, token=spec.token, page_keyboard=True,
-                               status_file=Path(spec.status_file), status_period_s=STATUS_PERIOD_S,
+                               status_file=Path(spec.status_file), status_period_s=LOBBY_STATUS_PERIOD_S,
                                status_form=lambda st: SessionStatus.from_serve(st).to_json(), headline=progress.line,
                                draw_unwatched=False, print_token=False)  # its output is a log file: the lobby hands out the URL
         return serve(session, options, devices=devices, problems=problems, stop=stop, log=lambda line: print(line, flush=True))

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from teleop.cli.access_args import add_access_args
+from teleop.cli.tls_args import add_tls_args, tls_files
 from teleop.cli.session_args import add_session_args, devices_from, follower_from, session_from
 from teleop.cli.signals import cancel_on_interrupt
 from devices.registry import SERVE_DEVICES as DEFAULT_DEVICES
@@ -30,9 +31,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_session_args(p)
     p.add_argument("--device", default=",".join(DEFAULT_DEVICES),
-                   help=f"comma list: gizmo, keyboard, spacemouse[:N...], so101_leader:PORT[...] (default {','.join(DEFAULT_DEVICES)}; "
+                   help=f"comma list: gizmo, keyboard, spacemouse[:N...], so101_leader:PORT[...], instruct:SENTENCE (last) "
+                        f"(default {','.join(DEFAULT_DEVICES)}; "
                         "absent ones are listed on the page; a leader arm that cannot start stops here)")
     add_access_args(p)
+    add_tls_args(p)
     p.add_argument("--policy", default=None, metavar="PATH",
                    help="a LeRobot pretrained_model folder (or script:FILE) that drives; touching any device takes "
                         "over, key p or the panel's button hands back; recorded steps say who drove")
@@ -63,7 +66,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     session = session_from(args, verify="background", on_error="stop")
     follower = follower_from(args, session)  # --follower: a real arm mirroring the simulated one, or None
     try:
-        devices, problems = devices_from(args, session.controller.n_arms, serving=True)
+        devices, problems = devices_from(args, session.controller.n_arms, serving=True, session=session)
         # Ctrl-C and SIGTERM stop the server, even when started with SIGINT ignored (as a background job).
         with cancel_on_interrupt(even_if_ignored=True) as stop:
             return serve(session, options, devices=devices, problems=problems, policy=policy, follower=follower,
@@ -81,9 +84,11 @@ def serve_options_from(args: argparse.Namespace, token: str | None) -> "ServeOpt
     """
     from teleop.web.session_page.serve_options import ServeOptions, asks_for_keyboard
 
+    tls_cert, tls_key = tls_files(args)  # --https: the self-signed pair, made on first use
     return ServeOptions(host=args.host, port=args.port, pos_speed=args.pos_speed, rot_speed=args.rot_speed, token=token,
                         no_token=args.no_token, page_keyboard=asks_for_keyboard(args.device.split(",")),
-                        policy_device=args.policy_device, keep_scene=args.keep_scene, status_file=args.status_file)
+                        policy_device=args.policy_device, keep_scene=args.keep_scene, status_file=args.status_file,
+                        tls_cert=tls_cert, tls_key=tls_key)
 
 
 def _load_policy(args: argparse.Namespace):

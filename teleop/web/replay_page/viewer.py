@@ -11,9 +11,9 @@ The viewer serves behind the session's gate (teleop.web.shared.access): a token 
 loopback, HTTP 403 and refused websockets without it, the per-port cookie and
 the Origin check. Its page can write the subtask file, and it does so only from
 a panel event, which arrives over viser's websocket and so past that gate.
-Camera and markers are the live session's (teleop.web.session_page.drawing), and
+Camera and markers are the live session's (teleop.web.shared.camera_markers), and
 so is the lighter view for a browser drawing WebGL in software
-(teleop.web.session_page.view_quality): without it such a page draws viser's
+(teleop.web.shared.view_quality): without it such a page draws viser's
 shadows and environment light without pause, ~0.8 s a frame, and a click on
 the timeline waits behind it. The page learns that, and gets the banner when
 the server is gone, from the session's input script run with no keys bound.
@@ -30,12 +30,12 @@ import mujoco
 
 from replay.episode import Episode, EpisodeError
 from teleop.errors import UsageError
-from teleop.web.shared.access import Gate, announce, resolve_token, start_guarded
-from teleop.web.session_page.drawing import Markers, place_camera
-from teleop.web.session_page.input_channel import PATH as INPUT_PATH
-from teleop.web.session_page.input_channel import InputChannel
-from teleop.web.session_page.page_keyboard import channel_script
-from teleop.web.session_page.view_quality import SoftwareViews, ViewReports, head_script
+from teleop.web.shared.access import Gate, announce, resolve_token
+from teleop.web.shared.camera_markers import Markers, place_camera
+from teleop.web.shared.input_channel import PATH as INPUT_PATH
+from teleop.web.shared.input_channel import InputChannel, channel_script
+from teleop.web.shared.view_quality import SoftwareViews, ViewReports, head_script
+from teleop.web.viser_internals.guarded_start import start_guarded
 from teleop.web.viser_internals.page_script import run_javascript
 from teleop.web.shared.net import check_port_free
 from teleop.web.replay_page.subtasks import SubtaskPanel

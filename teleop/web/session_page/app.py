@@ -15,8 +15,10 @@ replay on a worker thread, so a save never stalls the real-time loop.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
+import ssl
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,24 +33,33 @@ from devices.keyboard import KeyboardDevice
 from replay import VerifyResult
 from teleop.errors import UsageError
 from teleop.control.session import Session
-from teleop.web.shared.access import Gate, start_guarded, url_with_token
+from teleop.web.shared.access import Gate, url_with_token
 from teleop.web.session_page.camera_view import IMAGE_SIZE, CameraFeed
 from teleop.web.session_page.drawing import SceneDrawer
-from teleop.web.session_page.input_channel import PATH as INPUT_PATH
-from teleop.web.session_page.input_channel import InputChannel
+from teleop.web.shared.input_channel import PATH as INPUT_PATH
+from teleop.web.shared.input_channel import InputChannel, channel_script
 from teleop.web.shared.net import check_port_free, page_url
 from teleop.web.session_page.page_devices import PageInputs
-from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys, channel_script
+from teleop.web.session_page.page_keyboard import PageKeyboardDevice, PageKeys
 from teleop.web.session_page.panel import Panel, PanelDevice
 from teleop.web.session_page.sim_thread import SimThread, Snapshot
-from teleop.web.session_page.serve_options import STATUS_PERIOD_S, ServeOptions  # noqa: F401 - STATUS_PERIOD_S also read from here
-from teleop.web.session_page.view_quality import SoftwareViews, head_script
+from teleop.web.session_page.serve_options import ServeOptions
+from teleop.web.shared.view_quality import SoftwareViews, head_script
+from teleop.web.viser_internals.guarded_start import start_guarded
 from teleop.web.viser_internals.page_script import run_javascript
 
 if TYPE_CHECKING:  # annotations only: the policy side (gymnasium, export) loads only with --policy
     from teleop.learn.takeover import Takeover
 
 PHONE_PATH = "/phone"  # the phone page (teleop/web/session_page/phone.html), served beside viser's
+
+
+def make_companion(make, n_arms: int):
+    """A companion page (ServeOptions.companions) for a session of `n_arms` arms, from its factory or its name."""
+    if isinstance(make, str):
+        module, _, name = make.partition(":")
+        make = getattr(importlib.import_module(module), name)
+    return make(n_arms)
 
 
 class WebApp:
@@ -108,11 +119,26 @@ class WebApp:
         self.input.listener = self.page_inputs  # every page talks: at least to say how it draws
         pages = {PHONE_PATH: PageInputs.phone_page()} if self.page_inputs.phone is not None else {}
         self.has_phone_page = bool(pages)
+        # Companion pages on the same port (the XR page, ServeOptions.companions): their devices, pages and websockets.
+        self.companions = [make_companion(make, session.controller.n_arms) for make in options.companions]
+        routes = {INPUT_PATH: self.input.handle}
+        for companion in self.companions:
+            companion.device.start()
+            self.devices.append(companion.device)
+            pages = {**pages, **companion.pages}
+            routes.update(companion.routes)
         if port != 0:  # port 0: the system picks a free one as viser binds (a campaign's sessions: no race)
             check_port_free(host, port)
+        tls = None
+        if options.tls_cert is not None:  # every page and websocket over TLS (teleop serve --https / --tls-cert)
+            tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+            try:
+                tls.load_cert_chain(options.tls_cert, options.tls_key)
+            except (OSError, ssl.SSLError) as exc:
+                raise UsageError(f"--tls-cert {options.tls_cert} / --tls-key {options.tls_key}: cannot load them ({exc})") from None
         self.server = start_guarded(lambda: viser.ViserServer(host=host, port=port, label="teleop", verbose=False),
-                                    lambda server: server.stop(), self.gate, {INPUT_PATH: self.input.handle}, pages,
-                                    head=head_script())
+                                    lambda server: server.stop(), self.gate, routes, pages,
+                                    head=head_script(), tls=tls)
         self.software_views = SoftwareViews(self.server)  # viser clients drawing in software, given the cheap view
         self.page_inputs.on_view = self.software_views.reported
         if port == 0:
@@ -121,9 +147,13 @@ class WebApp:
             self.server.stop()
             raise UsageError(f"port {port} is already in use on {host}; stop what uses it or pass --port N")
         self.url = page_url(host, port)
+        if tls is not None:
+            self.url = "https://" + self.url.removeprefix("http://")
         self.page_url = url_with_token(self.url, token)  # what to open: with ?token=... when one is needed
         # the phone page's address, when a phone device runs (with its token: printed, never written to a file)
         self.phone_url: str | None = url_with_token(self.url + PHONE_PATH, token) if self.has_phone_page else None
+        # each companion page's address (with its token: printed and shown on the panel, never written to a file)
+        self.companion_urls = {path: url_with_token(self.url + path, token) for c in self.companions for path in c.pages}
         self.server.gui.configure_theme(control_width="large", show_logo=False, show_share_button=False)
         self.server.gui.main_panel.dock_right()
 
@@ -132,6 +162,7 @@ class WebApp:
         self.sim = SimThread(session, [*self.devices, self.panel_device], log=log,
                              steer=takeover.steer if takeover is not None else None)
         self.sim.on_saved = self._on_saved
+        self.sim.tick_hooks.extend(c.tick for c in self.companions)
         self.drawer = SceneDrawer(self.server, self.sim, self.gizmo)
         self.drawer.only_watched = not options.draw_unwatched  # a campaign's sessions draw only for a browser
         self.panel = Panel(self.server, self, tuple(session.scene.cameras), pos_speed, rot_speed)
@@ -327,6 +358,7 @@ class WebApp:
             "input": self.input.status(),
             "page_keyboard": self.page_keys.state() if self.page_keys is not None else None,
             "phone_url": self.url + PHONE_PATH if self.phone_url is not None else None,  # no token in a file
+            **{c.key: c.status() for c in self.companions},  # "xr": the XR page's channel and safety counts
             "driver": self.takeover.driver if self.takeover is not None else "operator",
             "policy": self.takeover.status() if self.takeover is not None else None,
             "follower": self.follower.status() if self.follower is not None else None,  # --follower: state, gap, sends

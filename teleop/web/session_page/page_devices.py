@@ -1,5 +1,5 @@
 """The input channel's listener for everything a page sends: keys, gamepads, the phone page, WebHID,
-and whether its WebGL draws in software (handed to the app: teleop/web/session_page/view_quality.py).
+and whether its WebGL draws in software (handed to the app: teleop/web/shared/view_quality.py).
 
 Messages arrive validated (`input_messages.parse`) on the network thread and go
 straight into the devices' own locked mailboxes (`devices/gamepad.py`,
@@ -18,7 +18,7 @@ from pathlib import Path
 from devices.gamepad import GamepadDevice
 from devices.phone import PhoneDevice
 from devices.webhid import BrowserHidHandle, WebHidSpaceMouse
-from teleop.web.session_page.input_messages import (
+from teleop.web.shared.input_messages import (
     Gamepad, Hid, HidConnect, HidDisconnect, InputMessage, Phone, PhoneButton, View,
 )
 from teleop.web.session_page.page_keyboard import PageKeys

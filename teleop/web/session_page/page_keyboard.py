@@ -17,18 +17,14 @@ page closes.
 
 from __future__ import annotations
 
-import json
 import re
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 from devices.keyboard import KeyboardDevice
-from teleop.web.session_page.input_channel import PATH
-from teleop.web.session_page.input_messages import Hello, InputMessage, Key, ReleaseAll, browser_keys
-
-SCRIPT = Path(__file__).with_name("page_input.js")
+from teleop.web.shared.input_channel import channel_script
+from teleop.web.shared.input_messages import Hello, InputMessage, Key, ReleaseAll, browser_keys
 
 
 class PageKeyboardDevice(KeyboardDevice):
@@ -82,12 +78,6 @@ def _product(agent: str) -> str:
 
 def _source(conn: int) -> str:
     return f"page:{conn}"
-
-
-def channel_script(client: int, keys: list[str]) -> str:
-    """page_input.js for viser's client `client`, catching `keys` (none: the channel only, for other devices)."""
-    config = {"path": PATH, "keys": list(keys), "client": int(client)}
-    return f"const CONFIG = {json.dumps(config)};\n" + SCRIPT.read_text(encoding="utf-8")
 
 
 class PageKeys:

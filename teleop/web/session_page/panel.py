@@ -125,6 +125,8 @@ class Panel(LoopThread):
                 gui.add_button(CONNECT_SPACEMOUSE, hint="a SpaceMouse plugged into this computer (WebHID: Chrome, Edge)")
             if app.phone_url is not None:
                 gui.add_markdown(f"Phone: open `{app.phone_url}` on the phone (https or a tunnel to localhost: see docs/session.md)")
+            for path, url in app.companion_urls.items():  # the XR page: a link here, its address for a headset
+                gui.add_markdown(f"[XR headset]({path}): open `{url}` in the headset's browser (docs/xr.md)")
             if app.page_inputs.gamepad is not None:
                 gui.add_markdown("Gamepad: " + " · ".join(f"**{control}** {action}" for control, action in GAMEPAD_MAPPING))
         self.notes_md = gui.add_markdown("")

@@ -104,6 +104,8 @@ def serve(
     if takeover is not None:
         log(f"policy {takeover.policy.name} drives; touch any device to take over, press p (or the panel's button) to hand back")
     log(f"open {app.page_url if options.print_token else app.url} in a browser (Ctrl-C to stop)")
+    for path, url in app.companion_urls.items():
+        log(f"XR headset: open {url if options.print_token else app.url + path} in the headset's browser")
     hint = remote_hint(host)
     if hint:
         log(hint)

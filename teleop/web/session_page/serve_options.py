@@ -19,9 +19,10 @@ from pathlib import Path
 
 from teleop.errors import UsageError
 
-__all__ = ["STATUS_PERIOD_S", "ServeOptions", "asks_for_keyboard"]
+__all__ = ["DEFAULT_STATUS_PERIOD_S", "ServeOptions", "asks_for_keyboard"]
 
-STATUS_PERIOD_S = 0.2  # s between status-file writes unless told otherwise
+DEFAULT_STATUS_PERIOD_S = 0.2  # s between status-file writes of a session when its options do not say
+XR_PAGE = "teleop.web.xr_page.xr_server:XrServer"  # the XR page's companion (teleop/web/xr_page/), by name
 
 
 @dataclass(frozen=True)
@@ -41,11 +42,19 @@ class ServeOptions:
     policy_device: str = "cpu"  # torch device that loads a policy given as a folder or script (not an already loaded Policy)
     keep_scene: bool = False  # Save, Stop and Discard leave the scene as it is (default: next seed, every episode from its start)
     status_file: Path | None = None  # a JSON status file rewritten while serving (scripts, tests, a campaign's lobby); None: none
-    status_period_s: float = STATUS_PERIOD_S  # s between status-file writes
+    status_period_s: float = DEFAULT_STATUS_PERIOD_S  # s between status-file writes
     status_form: Callable[[dict], str] | None = None  # the status file's text from the status dict (None: the dict as JSON)
     headline: Callable[[], str] | None = None  # a line of markdown under the task, asked at 4 Hz (a campaign's progress)
     draw_unwatched: bool = True  # send scene updates with no browser connected (False saves the CPU then)
     print_token: bool = True  # False: the log shows the page's URL without its token (a campaign's log is a file)
+    # Pages served beside the session page on its port, each made from the session's arm count when the server
+    # starts: a factory, or its name "module:factory" (imported then: the session page's room imports no other page's).
+    # A companion has `key` (its name), `device` (polled with the others), `pages` (path -> HTML), `routes` (path ->
+    # websocket handler), `tick(controller, snapshot, device_problems)` run after every control tick on the loop's
+    # thread, and `status()` (a dict). Default: the XR page (`/xr`, docs/xr.md).
+    companions: tuple[str | Callable[[int], object], ...] = (XR_PAGE,)
+    tls_cert: Path | None = None  # PEM certificate: every page and websocket over TLS (https, wss); with tls_key
+    tls_key: Path | None = None  # its PEM private key (`teleop serve --https` makes a self-signed pair: teleop/cli/tls_args.py)
 
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not self.host.strip():
@@ -60,6 +69,8 @@ class ServeOptions:
             raise UsageError("--token and --no-token contradict each other: give one")
         if not isinstance(self.policy_device, str) or not self.policy_device:
             raise UsageError(f"policy_device {self.policy_device!r}: a torch device such as cpu, cuda or mps")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise UsageError("--tls-cert and --tls-key go together: give both (or --https for a certificate made here)")
         if self.status_file is not None:
             object.__setattr__(self, "status_file", Path(self.status_file))  # a str from a script is a path too
 

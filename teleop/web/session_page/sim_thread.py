@@ -98,6 +98,8 @@ class SimThread(LoopThread):
         # that applied it, ms (the last ones, for a median or p95).
         self.tick_latency_ms: collections.deque[float] = collections.deque(maxlen=200)
         self.on_tick: Callable[[], None] | None = None  # called (in this thread) after every tick: the drawer's cue
+        # called (in this thread) after every tick with (controller, snapshot, device problems): companion pages (the XR page)
+        self.tick_hooks: list[Callable[[object, Snapshot, dict], None]] = []
         self._stamped = [d for d in self.devices if isinstance(d, InputStamped)]  # checked once: a Protocol check is slow
         self._restartable = [d for d in self.devices if isinstance(d, Restartable)]
         self._devices_tick = session.controller  # the scene (its tick) the devices last started on
@@ -213,6 +215,11 @@ class SimThread(LoopThread):
         on_tick = self.on_tick
         if on_tick is not None:
             on_tick()
+        for hook in self.tick_hooks:
+            try:
+                hook(session.controller, self.snapshot, self.device_problems)
+            except Exception as exc:  # noqa: BLE001 - a page's bug must not stop the loop
+                session.stats.note(f"{type(exc).__name__}: {exc}")
 
     def _run_actions(self) -> None:
         while True:

@@ -20,14 +20,14 @@ A request without the right token gets HTTP 403, websocket upgrades included,
 before viser sees it; so does a browser's websocket opened by another site's
 page (its Origin is not this server), viser's own included: on an open loopback
 server that is what keeps a web page from driving the session or saving files.
-Both servers, `teleop serve` and the replay viewer, start through this gate.
-The check is installed by wrapping the one call through which viser starts
-its server (`websockets.asyncio.server.serve`) while `ViserServer` starts
-(teleop.web.viser_internals.serving_hooks.wrapping_serve), so viser's own serving code is used unchanged;
-the same wrapper routes extra websocket paths (the page's input channel) to
-our handlers on the same port, so one SSH tunnel is enough.
-If a viser release stopped going through that call, starting fails rather than
-serving without the check.
+Every server of ours asks this gate: the viser pages (`teleop serve`, the replay viewer) through
+teleop.web.viser_internals.guarded_start.start_guarded, which puts it in front of viser's handler
+(and routes the page's input channel on the same port, so one SSH tunnel is enough; if a viser
+release stopped starting through the wrapped call, starting fails rather than serving without the
+check), and the stdlib servers (the review page, the campaign lobby) through
+teleop.web.shared.stdlib_http. The rules themselves are plain Python here: importing this module
+loads neither viser nor websockets (a request is anything with a `path` and `headers.get_all`,
+websockets' `Request` as the servers build it).
 
 Two more checks, as Jupyter's server makes them:
 - DNS rebinding: a web page can make its own name resolve to 127.0.0.1 and then talk to a
@@ -45,28 +45,22 @@ Two more checks, as Jupyter's server makes them:
 from __future__ import annotations
 
 import hmac
-import http
-import inspect
 import os
 import re
 import secrets
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, quote, urlsplit
-
-from websockets.asyncio.server import ServerConnection
-from websockets.datastructures import Headers
-from websockets.http11 import Request, Response
 
 from teleop.errors import UsageError
 from teleop.web.shared.net import exposure_warning, is_loopback, page_url, remote_hint
-from teleop.web.viser_internals import install as install_viser_internals
-from teleop.web.viser_internals.serving_hooks import INDEX_PATHS, Handler, ProcessRequest, with_head_script, wrapping_serve
+
+if TYPE_CHECKING:
+    from websockets.http11 import Request
 
 TOKEN_ENV = "TELEOP_TOKEN"
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,128}")  # goes into URLs and cookies unescaped
@@ -76,8 +70,6 @@ THROTTLE_WINDOW_S = 1.0  # ... within this many seconds ...
 THROTTLE_BLOCK_S = 5.0  # ... and its requests carrying a token get 429 for this long
 FORBIDDEN_TOKEN = "403 Forbidden: this server needs its token (open the URL that teleop printed, with ?token=...)"
 TOO_MANY = "429 Too Many Requests: too many wrong tokens from this address; wait a few seconds"
-
-T = TypeVar("T")
 
 
 def resolve_token(host: str, token: str | None = None, no_token: bool = False,
@@ -106,8 +98,12 @@ def resolve_token(host: str, token: str | None = None, no_token: bool = False,
 
 
 def url_with_token(url: str, token: str | None) -> str:
-    """The page URL to print: `http://host:port/?token=...` (unchanged without a token)."""
-    return url if token is None else f"{url.rstrip('/')}/?token={quote(token, safe='')}"
+    """The page URL to print: `http://host:port/?token=...`, or `http://host:port/phone?token=...` for a page
+    of its own (its path kept as served: `/phone/` is not `/phone`); unchanged without a token."""
+    if token is None:
+        return url
+    root = urlsplit(url).path in ("", "/")
+    return f"{url.rstrip('/')}/?token={quote(token, safe='')}" if root else f"{url}?token={quote(token, safe='')}"
 
 
 def announce(host: str, port: int, token: str | None, what: str, reach: str, log: Callable[[str], None]) -> None:
@@ -247,94 +243,3 @@ def not_local_message(port: int) -> str:
     """The 403 line for a request whose Host is not loopback, on a server open to loopback only."""
     return (f"403 Forbidden: this server answers only requests to localhost or 127.0.0.1 (a page of another site "
             f"reaching it by DNS rebinding is refused); open http://127.0.0.1:{port}/\n")
-
-
-def _is_upgrade(request: Request) -> bool:
-    return request.headers.get("Upgrade", "").lower() == "websocket"
-
-
-def html_response(body: bytes) -> Response:
-    """A 200 answer with an HTML page of our own (the phone page)."""
-    headers = Headers([("Content-Type", "text/html; charset=utf-8"), ("Content-Length", str(len(body)))])
-    return Response(http.HTTPStatus.OK, "OK", headers, body)
-
-
-def guard(gate: Gate, inner: ProcessRequest | None, routes: Mapping[str, Handler],
-          pages: Mapping[str, bytes] | None = None, head: bytes | None = None) -> ProcessRequest:
-    """viser's `process_request` behind the token check; our websocket paths checked for Origin too,
-    our own pages (path -> HTML) answered before viser's static files, and `head` (a <script>)
-    put first in viser's page."""
-    edited: dict[bytes, bytes] = {}
-
-    async def process_request(connection: ServerConnection, request: Request) -> Response | None:
-        if not gate.host_allowed(request.headers.get("Host")):
-            return connection.respond(http.HTTPStatus.FORBIDDEN, not_local_message(gate.port))
-        if gate.token is not None:
-            address = str(connection.remote_address[0]) if connection.remote_address else ""
-            carries = gate.carries_token(request)
-            if carries and gate.throttle.blocked(address):
-                return connection.respond(http.HTTPStatus.TOO_MANY_REQUESTS, TOO_MANY + "\n")
-            if not gate.allows(request):
-                if carries:
-                    gate.throttle.failed(address)
-                return connection.respond(http.HTTPStatus.FORBIDDEN, FORBIDDEN_TOKEN + "\n")
-        path = urlsplit(request.path).path
-        if _is_upgrade(request) and not same_origin(request):  # viser's websocket too: it drives and saves
-            return connection.respond(http.HTTPStatus.FORBIDDEN, "403 Forbidden: cross-origin\n")
-        if _is_upgrade(request) and path in routes:
-            return None
-        if not _is_upgrade(request) and pages and path in pages:
-            response = html_response(pages[path])
-        else:
-            response = inner(connection, request) if inner is not None else None
-        if inspect.isawaitable(response):
-            response = await response
-        if head and response is not None and response.status_code == http.HTTPStatus.OK and path in INDEX_PATHS:
-            response = with_head_script(response, head, edited)
-        if response is not None and gate.token is not None:
-            response.headers["Referrer-Policy"] = "no-referrer"  # the token never leaves in a Referer
-            response.headers["Cache-Control"] = "no-store"
-            if gate.wants_cookie(request) and response.status_code == http.HTTPStatus.OK:
-                response.headers["Set-Cookie"] = gate.set_cookie()
-        return response
-
-    return process_request
-
-
-def route(inner: Handler, routes: Mapping[str, Handler]) -> Handler:
-    """viser's websocket handler, with our paths sent to our handlers instead."""
-
-    async def handler(connection: ServerConnection) -> None:
-        target = routes.get(urlsplit(connection.request.path).path) if connection.request is not None else None
-        await (target or inner)(connection)
-
-    return handler
-
-
-@contextmanager
-def _guarded_serve(gate: Gate, routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None,
-                   head: bytes | None = None) -> Iterator[list[bool]]:
-    """While open, servers viser starts get the gate and routes; yields a list that gains an entry
-    per server so wrapped (empty: the check was not installed)."""
-    with wrapping_serve(lambda handler, process_request: (
-            route(handler, routes), guard(gate, process_request, routes, pages, head))) as wrapped:
-        yield wrapped
-
-
-def start_guarded(start: Callable[[], T], stop: Callable[[T], None], gate: Gate,
-                  routes: Mapping[str, Handler], pages: Mapping[str, bytes] | None = None,
-                  head: bytes | None = None) -> T:
-    """`start()` (which must start a viser server and return it) with the gate and routes installed.
-
-    Raises RuntimeError (after `stop`) if the server did not start through the
-    wrapped call, so a session never serves without its token check. Every app of ours
-    starts its viser server here, so viser's process-wide patches are installed here too.
-    """
-    install_viser_internals()
-    with _guarded_serve(gate, routes, pages, head) as wrapped:
-        server = start()
-    if not wrapped:
-        stop(server)
-        raise RuntimeError("this viser version starts its server in a way teleop cannot guard; "
-                           "the session token and the page input channel need viser 1.1")
-    return server

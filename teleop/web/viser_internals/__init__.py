@@ -11,10 +11,12 @@ releases, which pyproject.toml pins. The modules, split by what they reach into:
 - `scene_stream.py`: viser's scene updates: property sets collected per node in a block and written by
   us to the pages as one frame of viser's wire format;
 - `casts.py`: viser's property cast, quicker for float arrays;
-- `mjviser_poses.py`: mjviser's body handles and the poses they hold.
+- `mjviser_poses.py`: mjviser's body handles and the poses they hold;
+- `guarded_start.py`: `start_guarded`, viser's server started through `serving_hooks.wrapping_serve` with the
+  gate's rules (teleop.web.shared.access, plain Python) in front of its handler, and `install()` applied.
 
-`install()` applies the process-wide patches (`casts.quick_array_casts`, `scene_stream.collect_scene_updates`),
-once, explicitly, where an app starts its viser server (teleop.web.shared.access.start_guarded, which both
+`install()` applies the process-wide patches (`casts.install_quick_array_casts`, `scene_stream.collect_scene_updates`),
+once, explicitly, where an app starts its viser server (teleop.web.viser_internals.guarded_start.start_guarded, which both
 `teleop serve` and the replay viewer start through; the bench's own servers call it): never at import and never
 in a constructor. `SceneStream()` refuses to start without it. `serving_hooks.wrapping_serve` is not process-wide:
 it is a context manager around one `ViserServer()` construction (start_guarded again).
@@ -38,7 +40,7 @@ Why each exists, and the smallest upstream change that would retire it:
 - `page_script.FIXED_DPR_PARAM`, `GUI_BUTTON_SELECTOR`: facts about viser's client (a URL parameter it reads, the
   element a button is), not documented. Upstream: document them, or a server-side `ViserServer(pixel_ratio=...)`
   and a stable `data-` attribute on GUI elements.
-- `casts.quick_array_casts` (`AssignablePropsBase._cast_value_recursive` wrapped): viser builds
+- `casts.install_quick_array_casts` (`AssignablePropsBase._cast_value_recursive` wrapped): viser builds
   `npt.NDArray[np.float16/32/64]` anew on every property set to compare with the hint (~20-35 us each).
   Upstream: build those three hints once at module level (or cache the per-property cast in `_prop_hints`).
 - `scene_stream.collect_scene_updates`, `SceneStream`, `set_arrays`, `send_updates`
@@ -59,7 +61,7 @@ from __future__ import annotations
 
 import threading
 
-from teleop.web.viser_internals.casts import array_casts_quick, quick_array_casts
+from teleop.web.viser_internals.casts import install_quick_array_casts, quick_array_casts_installed
 from teleop.web.viser_internals.scene_stream import collect_scene_updates, scene_updates_collected
 
 _INSTALL_LOCK = threading.Lock()
@@ -69,10 +71,10 @@ def install() -> None:
     """Apply every process-wide patch of viser (idempotent, thread-safe): call where an app starts, before its
     scene is drawn."""
     with _INSTALL_LOCK:
-        quick_array_casts()
+        install_quick_array_casts()
         collect_scene_updates()
 
 
 def installed() -> bool:
     """Whether every process-wide patch of install() is in place."""
-    return array_casts_quick() and scene_updates_collected()
+    return quick_array_casts_installed() and scene_updates_collected()

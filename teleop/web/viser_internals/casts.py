@@ -1,4 +1,4 @@
-"""viser's property cast, quicker for float arrays (a process-wide patch: `quick_array_casts`, applied by
+"""viser's property cast, quicker for float arrays (a process-wide patch: `install_quick_array_casts`, applied by
 teleop.web.viser_internals.install).
 
 Every property a handle is given goes through `AssignablePropsBase._cast_value_recursive`,
@@ -21,7 +21,7 @@ FLOAT_ARRAY_HINTS = {npt.NDArray[t]: t for t in (np.float16, np.float32, np.floa
 _CAST_LOCK = threading.Lock()
 
 
-def quick_array_casts() -> None:
+def install_quick_array_casts() -> None:
     """Make viser's property cast look float-array hints up in FLOAT_ARRAY_HINTS (once per process; see above)."""
     with _CAST_LOCK:
         original = AssignablePropsBase._cast_value_recursive  # noqa: SLF001
@@ -42,6 +42,6 @@ def quick_array_casts() -> None:
         AssignablePropsBase._cast_value_recursive = cast  # noqa: SLF001
 
 
-def array_casts_quick() -> bool:
-    """Whether quick_array_casts is in place."""
+def quick_array_casts_installed() -> bool:
+    """Whether install_quick_array_casts's cast is in place."""
     return bool(getattr(AssignablePropsBase._cast_value_recursive, "quick", False))  # noqa: SLF001

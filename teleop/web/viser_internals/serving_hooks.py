@@ -4,11 +4,12 @@
   `websockets.asyncio.server.serve(handler, host, port, ..., process_request=...)`,
   looked up at call time; while the context is open that function lets us change
   the handler and `process_request` (the token gate and the input channel's route,
-  teleop.web.shared.access), so viser's own serving code runs unchanged behind them.
-  Not process-wide: it lasts only while a `ViserServer()` is constructed inside it.
+  teleop.web.viser_internals.guarded_start), so viser's own serving code runs unchanged behind them.
+  Not process-wide: it lasts only while a `ViserServer()` is constructed inside it. The same call
+  takes an `ssl` context for `teleop serve --https` (viser has no TLS option).
 - `INDEX_PATHS`, `with_head_script`: viser answers its page (its
   `client/build/index.html`, one `<head>`) at `/`, gzipped when the browser accepts
-  gzip; a script of ours goes first in that `<head>` (teleop.web.session_page.view_quality).
+  gzip; a script of ours goes first in that `<head>` (teleop.web.shared.view_quality).
 - `limit_message_size`: websockets' per-connection limit on incoming messages
   (viser sets 50 MB on every connection of its server, ours included).
 - `WEBSOCKET_PROTOCOL`: the subprotocol viser's server asks of a websocket client
@@ -21,6 +22,7 @@ Why viser needs these and what upstream change would retire them: the package's 
 from __future__ import annotations
 
 import gzip
+import ssl
 import threading
 from collections.abc import Awaitable, Callable, Iterator
 from contextlib import contextmanager
@@ -42,9 +44,10 @@ _SERVE_LOCK = threading.Lock()  # one wrapped start at a time: the replacement i
 
 
 @contextmanager
-def wrapping_serve(wrap: ServeWrap) -> Iterator[list[bool]]:
-    """While open, a server viser starts gets `wrap(handler, process_request)` in place of its own two;
-    yields a list that gains an entry per server so started (empty: viser did not start through the call)."""
+def wrapping_serve(wrap: ServeWrap, tls: "ssl.SSLContext | None" = None) -> Iterator[list[bool]]:
+    """While open, a server viser starts gets `wrap(handler, process_request)` in place of its own two, and
+    serves over TLS with `tls` when given (viser has no TLS option: `teleop serve --https`); yields a list that
+    gains an entry per server so started (empty: viser did not start through the call)."""
     module = websockets.asyncio.server
     original = module.serve
     wrapped: list[bool] = []
@@ -52,6 +55,8 @@ def wrapping_serve(wrap: ServeWrap) -> Iterator[list[bool]]:
     def serve(handler: Handler, *args, process_request: ProcessRequest | None = None, **kwargs):
         wrapped.append(True)
         handler, process_request = wrap(handler, process_request)
+        if tls is not None:
+            kwargs["ssl"] = tls
         return original(handler, *args, process_request=process_request, **kwargs)
 
     with _SERVE_LOCK:

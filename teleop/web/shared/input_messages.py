@@ -6,8 +6,9 @@ server's network thread, into one of a few small frozen types, or rejected
 with a one-line reason. Nothing downstream (the key state, the control loop)
 ever sees a message that is not one of these.
 
-Messages are JSON objects of at most MAX_BYTES, text frames, with exactly the
-fields of their type:
+Messages are JSON objects of at most MAX_BYTES, text frames on the channel's websocket at PATH
+(plain Python here, so the campaign lobby, a stdlib server, hands out the channel's URL without
+loading viser), with exactly the fields of their type:
   {"type": "hello", "client": 3, "agent": "Mozilla/5.0 ..."}   who this page is
   {"type": "view", "client": 3, "software_gl": true}            its WebGL draws in software (no GPU)
   {"type": "key", "key": "w", "down": true}                    a bound key, as KeyboardEvent.key
@@ -32,6 +33,7 @@ from dataclasses import dataclass
 
 from devices.keyboard import ALIASES, KEY_ACTION
 
+PATH = "/teleop/input"  # the channel's websocket, beside viser's on the same port (input_channel)
 MAX_BYTES = 512  # the longest valid message is a hello with its agent string
 MAX_AGENT = 200
 MAX_CLIENT_ID = 2**31 - 1
@@ -53,7 +55,7 @@ class Hello:
 @dataclass(frozen=True)
 class View:
     client: int | None  # viser's client id of the page
-    software_gl: bool  # WebGL drawn by a CPU renderer (SwiftShader, llvmpipe): teleop/web/session_page/view_quality.py
+    software_gl: bool  # WebGL drawn by a CPU renderer (SwiftShader, llvmpipe): teleop/web/shared/view_quality.py
 
 
 @dataclass(frozen=True)

@@ -1,14 +1,16 @@
-"""The page's own websocket to the server (`/teleop/input`), beside viser's on the same port.
+"""The page's own websocket to the server (`/teleop/input`), beside viser's on the same port, and the
+script every 3D page runs to speak on it (`channel_script`: page_input.js with its settings).
 
 viser 1.1 does not forward browser keys to Python, so the page runs a small
-script (page_input.js) that sends them here. The channel is the only way in
+script (page_input.js) that sends them here; the replay viewer's page runs it with no keys bound, for its
+renderer report and its lost-server banner. The channel is the only way in
 for those messages, and it bounds what a page can make the server do: each
 connection may send messages of at most `input_messages.MAX_BYTES` (frames over
 MAX_FRAME close it), at most RATE per second (with a burst of BURST), and
 there are at most MAX_CONNECTIONS at once. Every message is validated
 (`input_messages.parse`); one that fails, or comes too fast, is dropped and
 counted, and the connection carries on. The token rule and an Origin check
-are applied before the handshake (teleop.web.shared.access).
+are applied before the handshake (teleop.web.viser_internals.guarded_start, by teleop.web.shared.access's rules).
 
 Handlers run on viser's event loop thread; the listener's methods are called
 there, one message at a time, and must only update thread-safe state (the
@@ -25,23 +27,31 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import time
 import traceback
+from pathlib import Path
 from typing import Protocol
 
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from teleop.web.session_page.input_messages import InputMessage, Rejected, parse
+from teleop.web.shared.input_messages import PATH, InputMessage, Rejected, parse
 from teleop.web.viser_internals.serving_hooks import limit_message_size
 
-PATH = "/teleop/input"
 MAX_FRAME = 64 * 1024  # bigger frames close the connection (websockets' limit; code 1009)
 RATE = 300.0  # messages per second, sustained, per connection: keys, a pad at 60 Hz and a SpaceMouse at 125 Hz
 BURST = 600.0
 MAX_CONNECTIONS = 32
 PING_S = 0.25  # websocket pings to each page this often...
 QUIET_S = 1.0  # ...and a pong later than this releases its keys
+SCRIPT = Path(__file__).with_name("page_input.js")
+
+
+def channel_script(client: int, keys: list[str]) -> str:
+    """page_input.js for viser's client `client`, catching `keys` (none: the channel only, for other devices)."""
+    config = {"path": PATH, "keys": list(keys), "client": int(client)}
+    return f"const CONFIG = {json.dumps(config)};\n" + SCRIPT.read_text(encoding="utf-8")
 
 
 class InputListener(Protocol):

@@ -57,7 +57,7 @@
     if (socket !== null && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message));
   };
   // Whether this browser draws WebGL on the CPU (no GPU, or acceleration off), as the script first in the
-  // page found out (teleop/web/session_page/view_quality.py): the server then gives this page a view a CPU draws quickly.
+  // page found out (teleop/web/shared/view_quality.py): the server then gives this page a view a CPU draws quickly.
   const isSoftwareGl = () => window.__teleopSoftwareGl === true;
   const hello = () => {
     send({ type: "hello", client: config.client, agent: navigator.userAgent.slice(0, 200) });

@@ -38,8 +38,8 @@ from collections.abc import Callable
 
 import viser
 
-from teleop.web.session_page.drawing import CAMERA_LOOK_AT, CAMERA_POSITION
-from teleop.web.session_page.input_messages import InputMessage, View
+from teleop.web.shared.camera_markers import CAMERA_LOOK_AT, CAMERA_POSITION
+from teleop.web.shared.input_messages import InputMessage, View
 from teleop.web.viser_internals.page_script import FIXED_DPR_PARAM
 
 LIGHT_NAME = "/teleop/software_view_light"
@@ -48,7 +48,7 @@ SOFTWARE_DPR = 0.5  # device pixels per CSS pixel of the 3D view in a software-W
 
 # The renderer names viser's own "Software WebGL rendering detected" warning checks.
 _HEAD = """<script>
-(() => {  // teleop: a browser drawing WebGL without a GPU gets a lighter 3D view (teleop/web/session_page/view_quality.py)
+(() => {  // teleop: a browser drawing WebGL without a GPU gets a lighter 3D view (teleop/web/shared/view_quality.py)
   let software = false;
   try {
     const canvas = document.createElement("canvas");
