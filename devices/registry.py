@@ -7,6 +7,8 @@ Spec words:
                                 OPTION: behind|facing (stance), toggle|hold (gripper),
                                 arm=K, right=ACTION, sensitivity=F, deadzone=F
   script:FILE                   commands replayed from a JSON file
+  instruct:SENTENCE             a plan made from a sentence when each episode begins (the app's planner,
+                                devices/planned.py); the sentence runs to the end of the list, commas and all
   gizmo                         the browser's transform gizmo
   so101_leader:PORT[:OPTION...] a LeRobot leader arm (also so100_leader, koch_leader); OPTION:
                                 id=NAME, calibration=DIR, map=FILE, scale=F, arm=K (values keep
@@ -16,10 +18,16 @@ Spec words:
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from devices.base import Device, DeviceError
 from devices.leader_connect import LeaderError
+
+if TYPE_CHECKING:  # the planned device needs MuJoCo; `teleop --help` must not
+    from devices.planned import Planner
 
 
 @dataclass
@@ -34,6 +42,7 @@ class DeviceOptions:
     right_button: str = "reset"  # SpaceMouse right button: none|gripper|frame|reset|start|save|discard
     sensitivity: float = 1.0  # SpaceMouse: multiplies both speeds
     deadzone: float = 0.03  # SpaceMouse: fraction of full deflection read as zero
+    planner: "Callable[[str], Planner] | None" = None  # instruct:SENTENCE -> its planner (the app makes it; None: no instruct)
 
 
 def make_device(spec: str, options: DeviceOptions) -> Device:
@@ -50,6 +59,15 @@ def make_device(spec: str, options: DeviceOptions) -> Device:
         if not arg:
             raise DeviceError("the script device needs a file: script:FILE.json")
         return ScriptDevice(arg)
+    if name == "instruct":
+        from devices.planned import PlannedDevice
+
+        sentence = arg.strip().strip('"').strip()
+        if not sentence:
+            raise DeviceError('the instruct device needs a sentence: instruct:"put the red cube on the blue cube"')
+        if options.planner is None:
+            raise DeviceError("instruct: no planner here (teleop run and teleop serve make one)")
+        return PlannedDevice(sentence, options.planner(sentence))
     if name == "keyboard":
         from devices.keyboard import KeyboardDevice
 
@@ -181,10 +199,18 @@ def _expand(word: str) -> list[str]:
 
 BROWSER_DEVICES = ("gamepad", "phone", "webhid")  # fed by the operator's browser (teleop serve)
 LEADER_DEVICES = ("so101_leader", "so100_leader", "koch_leader")  # LeRobot leader arms on a serial port
-KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script", *BROWSER_DEVICES, *LEADER_DEVICES)
-KNOWN_TEXT = "keyboard, spacemouse[:N], gizmo, script:FILE, gamepad, phone, webhid, so101_leader:PORT, so100_leader:PORT, koch_leader:PORT"
+KNOWN_DEVICES = ("keyboard", "spacemouse", "gizmo", "script", "instruct", *BROWSER_DEVICES, *LEADER_DEVICES)
+KNOWN_TEXT = ("keyboard, spacemouse[:N], gizmo, script:FILE, instruct:SENTENCE, gamepad, phone, webhid, so101_leader:PORT, "
+              "so100_leader:PORT, koch_leader:PORT")
 # What a browser session opens unless told otherwise: the page's inputs, and this machine's keyboard and SpaceMouse.
 SERVE_DEVICES = ("gizmo", "keyboard", "spacemouse", *BROWSER_DEVICES)
+
+
+def split_spec(spec: str) -> list[str]:
+    """The words of a comma list; an `instruct:` sentence runs to the end of it, commas and all."""
+    m = re.search(r"(?:^|,)\s*instruct:", spec, re.IGNORECASE)
+    head, tail = (spec[: m.start()], spec[m.start():].lstrip(",").strip()) if m else (spec, "")
+    return [w.strip() for w in head.split(",") if w.strip()] + ([tail] if tail else [])
 
 
 def open_devices(
@@ -203,7 +229,7 @@ def open_devices(
     """
     started: list[Device] = []
     problems: list[str] = []
-    words = [w.strip() for w in spec.split(",") if w.strip()]
+    words = split_spec(spec)
     if not words:
         raise DeviceError(f"no device given: name at least one of {', '.join(KNOWN_DEVICES)}")
     for word in words if require_known else ():

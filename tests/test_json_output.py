@@ -26,6 +26,7 @@ COMMANDS = [
     ("devices", ["devices", "--json"], dict),
     ("video", ["video", "{mcap}", "--out", "{out}/v.gif", "--size", "32x24", "--json"], dict),
     ("bench-control", ["bench", "--only", "control", "--quick", "--json"], dict),
+    ("perceive", ["perceive", "--scene", "lift", "--image", "{out}/seen.png", "--json"], dict),
 ]  # viser's banner (printed to stdout by `bench --only web`, ~50 s) is checked in one process below
 
 
@@ -76,6 +77,7 @@ BAD_INPUTS: dict[str, tuple[list[str], str]] = {
     "generate": (["generate", "{tmp}", "--out", "{tmp}/gen", "--num", "1", "--json"], "no source episodes"),
     "eval": (["eval", "--policy", "{tmp}/nope", "--episodes", "1", "--json"], "nope"),
     "video": (["video", "{tmp}", "--out", "{tmp}/v.mp4", "--json"], "no episode files"),
+    "perceive": (["perceive", "--scene", "no_such_task", "--image", "{tmp}/seen.png", "--json"], "no_such_task"),
 }
 # More ways in for `run`: a bad task, a usage error (argparse's own), a script naming what the scene lacks.
 RUN_BAD = {

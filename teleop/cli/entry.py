@@ -24,6 +24,7 @@ from teleop.cli import episodes as cli_episodes
 from teleop.cli import eval as cli_eval
 from teleop.cli import export as cli_export
 from teleop.cli import generate as cli_generate
+from teleop.cli import perceive as cli_perceive
 from teleop.cli import run as cli_run
 from teleop.cli import review as cli_review
 from teleop.cli import serve as cli_serve
@@ -33,7 +34,7 @@ from teleop.cli.signals import terminate_as_interrupt
 
 # One module per command group, in the order `teleop --help` lists them.
 MODULES = (cli_catalog, cli_run, cli_bench, cli_episodes, cli_serve, cli_campaign, cli_devices, cli_export, cli_annotate,
-           cli_review, cli_generate, cli_eval)
+           cli_review, cli_generate, cli_eval, cli_perceive)
 
 
 class Parser(argparse.ArgumentParser):

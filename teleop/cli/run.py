@@ -20,7 +20,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run a session headless (scripted or keyboard/SpaceMouse) and print a summary")
     add_session_args(p)
     p.add_argument("--device", required=True,
-                   help="comma list: script:FILE.json, keyboard, spacemouse, so101_leader:PORT[:id=NAME...] (and "
+                   help="comma list: script:FILE.json, instruct:SENTENCE, keyboard, spacemouse, so101_leader:PORT[:id=NAME...] (and "
                         "so100_leader, koch_leader: docs/leaders.md)")
     p.add_argument("--seconds", type=float, default=None, help="simulated seconds per episode (default: until the script ends)")
     p.add_argument("--episodes", type=int, default=1, help="episodes to run, seeds seed, seed+1, ... (default 1)")
@@ -42,7 +42,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     session = session_from(args)
     follower = follower_from(args, session)  # a real arm mirroring the simulated one (--follower), or None
     try:
-        devices, _ = devices_from(args, session.controller.n_arms)
+        devices, _ = devices_from(args, session.controller.n_arms, session=session)
     except BaseException:
         if follower is not None:
             follower.close()

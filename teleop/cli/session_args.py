@@ -32,8 +32,13 @@ def add_session_args(p: argparse.ArgumentParser) -> None:
     add_physics_args(p)
     p.add_argument("--follower", default=None, metavar="SPEC",
                    help="a real arm that mirrors the simulated one: so101_follower:PORT[:id=NAME][:calibration=DIR]"
-                        "[:max_step=DEG] (with --robot so101; each joint moves at most max_step degrees a tick, default 5; "
+                        "[:map=FILE][:max_step=DEG] (with --robot so101; each joint moves at most max_step degrees a tick, default 5; "
                         "the session then runs in real time)")
+    p.add_argument("--instruct-state", action="store_true",
+                   help="instruct:SENTENCE reads object positions from the simulator's state, not the camera (to compare)")
+    p.add_argument("--instruct-camera", default="front", metavar="NAME", help="the camera instruct:SENTENCE looks through (default front)")
+    p.add_argument("--plan-url", default=None, metavar="URL",
+                   help="an OpenAI-compatible chat-completions endpoint that plans instruct:SENTENCE (default: the rule planner)")
 
 
 def session_from(args: argparse.Namespace, verify: str = "sync", on_error: str = "raise") -> Session:
@@ -60,12 +65,29 @@ def follower_from(args: argparse.Namespace, session: Session) -> "Follower | Non
     from teleop.control.follower_spec import check_pairing, parse_follower_spec
 
     check_pairing(parse_follower_spec(args.follower), session.robot.name)  # before LeRobot loads (seconds)
-    return open_follower(args.follower, session)
+    return open_follower(args.follower, session, devices=getattr(args, "device", None))  # a leader's map= is the follower's too
 
 
 def devices_from(args: argparse.Namespace, n_arms: int, serving: bool = False,
-                 log: Callable[[str], None] | None = None) -> tuple[list[Device], list[str]]:
-    """The devices of --device at --pos-speed / --rot-speed (see open_session_devices)."""
+                 log: Callable[[str], None] | None = None, session: Session | None = None) -> tuple[list[Device], list[str]]:
+    """The devices of --device at --pos-speed / --rot-speed (see open_session_devices); an instruct:SENTENCE plans
+    with --instruct-state / --instruct-camera / --plan-url and notes each plan in `session`'s episodes."""
     from teleop.control.session_setup import open_session_devices
 
-    return open_session_devices(args.device, n_arms, args.pos_speed, args.rot_speed, serving=serving, log=log)
+    return open_session_devices(args.device, n_arms, args.pos_speed, args.rot_speed, serving=serving, log=log,
+                                planner=instruct_planner(args, session))
+
+
+def instruct_planner(args: argparse.Namespace, session: Session | None):
+    """instruct:SENTENCE -> its planner, from the instruct flags (teleop.instruct; loaded only when used)."""
+    if "instruct:" not in args.device.lower():
+        return None
+    from teleop.instruct.session_plan import InstructOptions, make_planner
+
+    options = InstructOptions(state=args.instruct_state, camera=args.instruct_camera, plan_url=args.plan_url)
+
+    def note(plan: dict) -> None:  # the episode says where it came from: the sentence, the positions, the steps
+        if session is not None and session.recorder is not None:
+            session.recorder.provenance["generator"] = plan
+
+    return lambda sentence: make_planner(sentence, options, on_note=note)

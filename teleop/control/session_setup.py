@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from devices.base import Cautioned, Device
+from devices.planned import Planner
 from devices.registry import DeviceOptions, open_devices
 from scenes.vary.variation import Variation
 from teleop.control.recording import Recorder
@@ -50,16 +51,18 @@ def open_session_devices(
     rot_speed: float,
     serving: bool = False,
     log: Callable[[str], None] | None = None,
+    planner: Callable[[str], Planner] | None = None,
 ) -> tuple[list[Device], list[str]]:
     """The devices of a comma list (one way for run and serve); problems and caveats go to `log`.
 
     Serving, a session may start with no device but the page (the gizmo comes and goes with
     browsers), and a misspelt device name is an error rather than a line in the device list.
+    `planner` makes an instruct:SENTENCE's planner (teleop.instruct.session_plan.make_planner).
     """
     log = log or (lambda m: print(m, file=sys.stderr))
     if pos_speed <= 0 or rot_speed <= 0:
         raise UsageError("--pos-speed and --rot-speed must be positive")
-    options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=n_arms)
+    options = DeviceOptions(pos_speed=pos_speed, rot_speed=rot_speed, n_arms=n_arms, planner=planner)
     devices, problems = open_devices(spec, options, require_any=not serving, require_known=serving)
     for line in problems:
         log(f"device not started: {line}")
