@@ -72,6 +72,7 @@ debian_test_packages() {
     command -v Xvfb >/dev/null || need+=(xvfb)
     command -v xdotool >/dev/null || need+=(xdotool)
     [ -x /usr/bin/chromium ] || need+=(chromium)
+    command -v npm >/dev/null || need+=(npm)  # fetches IWER, the WebXR emulator of the XR page's tests
     ldconfig -p | grep -q libOSMesa || need+=(libosmesa6)
     ldconfig -p | grep -q 'libEGL.so.1' || need+=(libegl1)
     [ -e /usr/lib/x86_64-linux-gnu/dri ] || [ -e /usr/lib/aarch64-linux-gnu/dri ] || need+=(libgl1-mesa-dri)
@@ -84,6 +85,28 @@ debian_test_packages() {
             echo "run.sh: the tests need these Debian packages: sudo apt-get install ${need[*]}" >&2
             exit 2
         fi
+    fi
+}
+
+iwer_for_tests() {
+    # tests/test_xr_*.py emulate a Quest 3 in headless Chromium with Meta's IWER (npm `iwer`, MIT): fetched from the
+    # npm registry into a cache, only when missing, never into the repository (tests/test_xr_*.py and bench/xr.py find it there).
+    local dir="${TELEOP_IWER_CACHE:-$HOME/.cache/mujoco-teleop/iwer}/2.5.0"
+    if [ ! -f "$dir/package/build/iwer.min.js" ]; then
+        echo "run.sh: fetching iwer 2.5.0 (the WebXR emulator) into $dir..." >&2
+        mkdir -p "$dir"
+        (cd "$dir" && npm pack iwer@2.5.0 --silent >/dev/null && tar xzf iwer-2.5.0.tgz && rm -f iwer-2.5.0.tgz) \
+            || { echo "run.sh: could not fetch iwer 2.5.0 with npm (the XR page's tests need it)" >&2; exit 1; }
+    fi
+}
+
+lerobot_plugin_for_tests() {
+    # LeRobot's commands find this project's robot, teleoperator and env types through the thin distribution
+    # plugins/lerobot_robot_mujoco_teleop (issue 58; docs/lerobot_commands.md): installed after the project, when missing.
+    if ! "$VENV/bin/python" -c 'import importlib.metadata as m; m.version("lerobot_robot_mujoco_teleop")' 2>/dev/null; then
+        echo "run.sh: installing the LeRobot plugin (plugins/lerobot_robot_mujoco_teleop) into $VENV..." >&2
+        quiet_install install --no-build-isolation ./plugins/lerobot_robot_mujoco_teleop
+        rm -rf plugins/lerobot_robot_mujoco_teleop/build
     fi
 }
 
@@ -106,6 +129,8 @@ case "$first" in
         debian_test_packages
         make_venv "test,lerobot,train,cluster,hardware"
         robomimic_for_tests
+        lerobot_plugin_for_tests
+        iwer_for_tests
         export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
         # One OpenMP/MKL thread per process: three workers share the 2 cores, and torch's intra-op threads only
         # spin against each other there (bench/train_eval.sh sets the same for its training and evaluation)

@@ -73,3 +73,14 @@ rc=0; wait "$serve_pid" || rc=$?
 serve_pid=""
 [ "$rc" = 0 ] || fail "teleop serve exited with $rc on Ctrl-C: $(tail -3 "$work/serve.log")"
 say "teleop serve: stopped by Ctrl-C (exit 0)"
+# The LeRobot plugin distribution (plugins/lerobot_robot_mujoco_teleop, issue 58) builds and installs beside the wheel
+# (--no-deps: LeRobot is the lerobot extra's, not the core's), and its import, which LeRobot runs at every command's
+# start, needs nothing more than the core and loads no MuJoCo, torch or viser.
+"$python" -m pip wheel --no-deps --no-build-isolation -q "$work/src/plugins/lerobot_robot_mujoco_teleop" -w "$work/plugin" \
+    || fail "pip wheel could not build plugins/lerobot_robot_mujoco_teleop"
+"$work/venv/bin/python" -m pip install -q --no-deps "$work"/plugin/lerobot_robot_mujoco_teleop-*.whl \
+    || fail "pip install of the plugin's wheel failed"
+"$work/venv/bin/python" -c 'import sys, lerobot_robot_mujoco_teleop
+heavy = [m for m in ("mujoco", "torch", "viser") if m in sys.modules]
+sys.exit(f"it imported {heavy}" if heavy else 0)' || fail "importing lerobot_robot_mujoco_teleop from the wheel failed"
+say "the LeRobot plugin distribution: installed, imports light"

@@ -17,9 +17,10 @@ from rich.console import Console
 from teleop.cli.json_output import json_stdout, print_json
 
 MODULES = ("control", "recording", "web", "export", "devices", "generate", "eval", "e2e", "faults", "cameras", "tasks", "grasp", "review",
-           "leader", "campaign")
-# Run only when named in --only: a train-and-evaluate loop (~30 min on 2 cores); generation on every task (~20 min); up to 48 campaign sessions
-SLOW = ("e2e", "tasks", "campaign")
+           "leader", "campaign", "instruct", "lerobot", "xr")
+# Run only when named in --only: a train-and-evaluate loop (~30 min on 2 cores); generation on every task (~20 min); up to 48 campaign sessions;
+# 300 instruction episodes (~10 min); LeRobot's own commands on the simulation (several torch processes, ~10 min)
+SLOW = ("e2e", "tasks", "campaign", "instruct", "lerobot")
 
 
 def run_all(quick: bool = False, only: list[str] | None = None, progress: bool = True) -> dict[str, float]:

@@ -89,7 +89,8 @@ def test_the_library_layers_import_none_of_ours_lazily():
 # (errors, gym: the public `teleop.gym`, __init__: the public `import teleop`, __main__).
 # The data flows control -> generate / learn -> web -> campaign -> cli: a part imports only the parts
 # its row names, and only cli/ (the commands) imports every part.
-TELEOP_PARTS = ("errors", "control", "generate", "learn", "web", "campaign", "gym", "__init__", "cli", "__main__")
+TELEOP_PARTS = ("errors", "control", "generate", "learn", "web", "campaign", "gym", "__init__", "lerobot_plugin", "instruct",
+                "cli", "__main__")
 TELEOP_ALLOWED: dict[str, set[str]] = {
     "errors": set(),                                 # the teleop errors, on scenes.errors' root
     "control": {"errors"},                           # controller, IK, session, loop, recording
@@ -99,6 +100,8 @@ TELEOP_ALLOWED: dict[str, set[str]] = {
     "campaign": {"errors", "control", "web"},        # many operators, a session process each (issue 35)
     "gym": {"learn"},                                # `teleop.gym`: registers learn/'s environment
     "__init__": {"errors", "control", "web"},        # `import teleop`: the scripting API
+    "lerobot_plugin": {"errors", "control", "learn", "web"},  # LeRobot's robot, teleoperator and env types (issue 58)
+    "instruct": set(),                               # a camera finds the objects, a sentence becomes a plan (issue 59)
     "cli": set(TELEOP_PARTS) - {"cli", "__main__"},  # the commands: every part
     "__main__": {"cli"},                             # `python -m teleop`
 }
@@ -714,3 +717,110 @@ def test_no_private_attribute_of_viser_mjviser_or_websockets_is_used_outside_the
     found = private_uses_outside_the_door(ROOT)
     assert not found, f"private names of {', '.join(LIBRARIES)} are used only in {DOOR}/:\n" + "\n".join(found)
     assert private_accesses(ROOT / DOOR / "scene_stream.py")  # the check sees them where they are
+
+
+# -- inside teleop/web/: a room per page, what two pages use in shared/ (issue 56, item 7) -------------------------
+# A page's room (session_page/, replay_page/, review_page/, any new one) imports no other page's room, so what two
+# pages use cannot stay in one of them: it lives in shared/. shared/ imports no page (the door, yes: its pages draw
+# through viser); the door imports no page, and of shared/ only the gate (guarded_start puts it in front of viser).
+# The campaign's lobby is a page too: teleop/campaign/ takes only shared/ of the web. The commands (cli/) and
+# `import teleop` start pages, so they import them.
+COMMON_ROOMS = ("shared", "viser_internals")
+DOOR_MAY_TAKE = ("teleop.web.shared.access",)  # the gate's rules, for guarded_start.start_guarded
+
+
+def web_room(module: str) -> str | None:
+    """teleop.web.session_page.app -> session_page; teleop.web (the package itself) and modules outside it -> None."""
+    parts = module.split(".")
+    return parts[2] if parts[:2] == ["teleop", "web"] and len(parts) > 2 else None
+
+
+def web_room_violations(root: Path) -> list[str]:
+    """Every import (inside functions too) that crosses the web folder's rooms against the rule above."""
+    graph = module_graph(root, ["teleop"], module_level_only=False)
+    bad = []
+    for module, targets in graph.items():
+        room = web_room(module)
+        for target, where in targets.items():
+            to = web_room(target)
+            if to is None or to == room:
+                continue
+            if room is None:
+                allowed = module.split(".")[:2] != ["teleop", "campaign"] or to == "shared"
+            elif room == "shared":
+                allowed = to == "viser_internals"
+            elif room == "viser_internals":
+                allowed = target in DOOR_MAY_TAKE
+            else:
+                allowed = to in COMMON_ROOMS
+            if not allowed:
+                bad.append(f"{where}: {module} imports {target}")
+    return bad
+
+
+def test_the_web_room_check_can_fail(tmp_path):
+    files = {
+        "teleop/web/a_page/x.py": "from teleop.web.shared import s\nfrom teleop.web.b_page.y import Y\n",
+        "teleop/web/b_page/y.py": "def f():\n    from teleop.web.a_page import x\n",
+        "teleop/web/shared/s.py": "from teleop.web.viser_internals.d import D\nfrom teleop.web.a_page.x import X\n",
+        "teleop/web/viser_internals/d.py": "from teleop.web.shared.access import Gate\nfrom teleop.web.shared.s import S\n",
+        "teleop/web/shared/access.py": "",
+        "teleop/campaign/lobby.py": "from teleop.web.shared.s import S\nfrom teleop.web.a_page.x import X\n",
+        "teleop/cli/serve.py": "from teleop.web.a_page.x import X\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert sorted(web_room_violations(tmp_path)) == [
+        "teleop/campaign/lobby.py:2: teleop.campaign.lobby imports teleop.web.a_page.x",
+        "teleop/web/a_page/x.py:2: teleop.web.a_page.x imports teleop.web.b_page.y",
+        "teleop/web/b_page/y.py:2: teleop.web.b_page.y imports teleop.web.a_page.x",
+        "teleop/web/shared/s.py:2: teleop.web.shared.s imports teleop.web.a_page.x",
+        "teleop/web/viser_internals/d.py:2: teleop.web.viser_internals.d imports teleop.web.shared.s",
+    ]
+
+
+def test_what_two_pages_use_lives_in_shared():
+    """Issue 56, item 7: no page's room imports another's (the replay viewer once took the session page's drawing,
+    input channel, keyboard script and view quality), the lobby takes only shared/, shared/ takes no page."""
+    rooms = {p.name for p in (ROOT / "teleop" / "web").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert {"session_page", "replay_page", "review_page", *COMMON_ROOMS} <= rooms
+    bad = web_room_violations(ROOT)
+    assert not bad, "a page's room imports only itself, shared/ and viser_internals/ (move what two pages use " \
+                    "into teleop/web/shared/):\n" + "\n".join(bad)
+
+
+# The gate is plain Python: the stdlib servers (the review page, the campaign lobby) ask it without loading viser
+# or its wire format (msgspec). Checked in a fresh interpreter: what an import really loads, not what the source
+# seems to say. (Those servers read episodes, whose MCAP chunks bring zstandard; the gate itself loads neither
+# that nor websockets.)
+VISER_AND_ITS_WIRE = ("viser", "mjviser", "msgspec")
+
+
+def modules_loaded_by(module: str, names: tuple[str, ...]) -> list[str]:
+    """Which of `names` (top-level packages) a fresh interpreter has loaded after `import module`."""
+    import json
+    import subprocess
+    import sys
+
+    probe = (f"import json, sys\nimport {module}\n"
+             f"print(json.dumps(sorted(n for n in {list(names)!r} if n in sys.modules)))\n")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_the_loaded_modules_probe_sees_an_import():
+    assert modules_loaded_by("teleop.web.viser_internals.guarded_start", VISER_AND_ITS_WIRE) == ["msgspec", "viser"]
+
+
+@pytest.mark.parametrize("module, unwanted", [
+    ("teleop.web.shared.access", (*VISER_AND_ITS_WIRE, "zstandard", "websockets")),
+    ("teleop.web.shared.stdlib_http", (*VISER_AND_ITS_WIRE, "zstandard", "websockets")),
+    ("teleop.web.review_page.server", VISER_AND_ITS_WIRE),
+    ("teleop.campaign.lobby", VISER_AND_ITS_WIRE),
+])
+def test_the_gate_and_the_stdlib_servers_load_no_viser(module, unwanted):
+    """Issue 56, item 7: the gate's rules are apart from viser's start (teleop.web.viser_internals.guarded_start)."""
+    loaded = modules_loaded_by(module, unwanted)
+    assert loaded == [], f"importing {module} loads {loaded}: the gate and the stdlib servers need none of them"
