@@ -9,6 +9,7 @@ set -euo pipefail
 unset PYTHONPATH PYTHONHOME
 root=$(cd "$(dirname "$0")/.." && pwd)
 python=${1:-$root/.venv/bin/python}
+case "$python" in /*) ;; */*) python="$PWD/$python" ;; esac  # a relative path (run.sh's .venv/bin/python) outlives the cd below
 work=$(mktemp -d)
 serve_pid=""
 cleanup() { [ -n "$serve_pid" ] && kill "$serve_pid" 2>/dev/null; rm -rf "$work"; }

@@ -110,7 +110,7 @@ esac
 case "$task" in
     handover) steps=${steps:-9000} ;;
     stack|pick_place) steps=${steps:-18000} ;;
-    *) steps=${steps:-11000} ;;
+    *) steps=${steps:-6000} ;;
 esac
 case "$task" in  # the task's defaults, for what the options leave unset
     stack|pick_place) defaults=(ee_pose 2000 3e-4 cosine 0.1) ;;
