@@ -5,7 +5,7 @@ images) -> lerobot-train ACT on this machine's CPU -> `teleop eval` on seeds 100
 Figures: e2e_lift_success_rate with its 95 % Wilson interval (e2e_lift_ci95), the
 training time in seconds, and the demos it trained on. The work directory
 (out/e2e/bench-lift) is made afresh each run. Not in a plain `teleop bench`:
-it takes ~25 minutes on 2 cores (11,000 steps: the whole run within 30, docs/learning.md).
+it takes ~27 minutes on 2 cores (6,000 steps: the whole run within 30, docs/learning.md).
 """
 
 from __future__ import annotations

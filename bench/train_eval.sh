@@ -16,7 +16,7 @@
 #   4. `lerobot-train` ACT with the hyper-parameters below, on DEVICE (cpu; cuda where there is one): a constant
 #      learning rate of 1e-4 (pick_place, stack: 3e-4 decayed to 1e-5 on a cosine, after 500 warm-up steps); the policy
 #      averages its chunks' predictions for each tick with weights exp(-C i), i = 0 the oldest (ACT's temporal
-#      ensembling; C = 0.01, pick_place and stack 0.1); 11,000 steps (pick_place and stack 18,000, handover 9,000); dropout P
+#      ensembling; C = 0.01, pick_place and stack 0.1); 6,000 steps (pick_place and stack 18,000, handover 9,000); dropout P
 #      in the transformer (default none, see below);
 #   5. `teleop eval` on seeds 1000-1049 (--episodes N: 1000..1000+N-1; its JSON in WORK/eval.json), each episode
 #      failed after T simulated seconds (--max-seconds, default 20 as in `teleop eval`).
@@ -98,12 +98,10 @@ esac
 # pick_place learns the same way: lift's settings (joint targets, 200 demos, 1e-4, C = 0.01) gave 0.38 without
 # dropout (23 passes over each frame; 15 timeouts, 13 still holding the cube at the end), stack's gave 0.98.
 # pick_place and stack train 18,000 steps: 27.9-29.5 min on 2 cores in the machine's slow state (the data workers are then
-# the bottleneck: ~10.6 steps/s, against 14-15 on its faster days). lift and the other joint-target tasks train 11,000:
+# the bottleneck: ~10.6 steps/s, against 14-15 on its faster days). lift and the other joint-target tasks train 6,000:
 # the whole run as the README prints it (sources, 200 generated, export, training, 50 evaluated) must stay within
-# 30 min on 2 cores, and 18,000 steps alone took 1,954 s there (2026-11-28); 11,000 at that rate are ~1,200 s, the
-# run ~23 min by the figures in docs/learning.md ("What a run costs", an estimate). 18,000 steps lifted the cube in 50
-# of 50 (2026-11-26 and 2026-11-28), 10,000 in 45 and 50 of 50 from human-like sources (docs/speed.md, the learning
-# curve).
+# 30 min on 2 cores: measured alone on 2026-11-28 in the machine's slow state (0.236 s a step), 1,620 s in all,
+# 1,413 s of training, 50 of 50 lifted (docs/learning.md, "What a run costs").
 # handover (two arms) gets 9,000: its data workers feed 6-8 steps/s (62,325 frames of 14-D state and action from
 # 200 episodes of ~310 frames), against lift's 10.6-15, so 18,000 steps would take 40-55 min; 9,000 took 20.6 min
 # (2026-11-26) and the policy succeeded on 50 of 50 new seeds.
