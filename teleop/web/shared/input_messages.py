@@ -190,16 +190,22 @@ def _no_constant(word: str):
     raise Rejected(f"{word} is not a number JSON allows")
 
 
-def parse(raw: str | bytes) -> InputMessage:
-    """One message from a page, or Rejected naming what is wrong with it."""
+def decode_frame(raw: str | bytes, max_bytes: int = MAX_BYTES) -> object:
+    """A page's websocket frame as JSON (text, at most `max_bytes`, no NaN or Infinity), or Rejected: the first
+    check of every page channel's messages (this one's and the XR page's)."""
     if not isinstance(raw, str):
         raise Rejected("binary frame (messages are JSON text)")
-    if len(raw.encode("utf-8", "replace")) > MAX_BYTES:
-        raise Rejected(f"message longer than {MAX_BYTES} bytes")
+    if len(raw.encode("utf-8", "replace")) > max_bytes:
+        raise Rejected(f"message longer than {max_bytes} bytes")
     try:
-        data = json.loads(raw, parse_constant=_no_constant)
+        return json.loads(raw, parse_constant=_no_constant)
     except (json.JSONDecodeError, RecursionError) as exc:
         raise Rejected(f"not JSON ({exc.__class__.__name__})") from None
+
+
+def parse(raw: str | bytes) -> InputMessage:
+    """One message from a page, or Rejected naming what is wrong with it."""
+    data = decode_frame(raw)
     if not isinstance(data, dict):
         raise Rejected("not a JSON object")
     kind = data.get("type")

@@ -17,8 +17,9 @@ the count says how often the headset sent one.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
+
+from teleop.web.shared.input_messages import Rejected, decode_frame
 
 MAX_BYTES = 512
 HANDS = ("left", "right")
@@ -28,8 +29,6 @@ MODES = ("controller", "hand")
 SCALE_RANGE = (0.1, 5.0)
 
 
-class Rejected(ValueError):
-    """A message that is dropped; the text says why in one line."""
 
 
 @dataclass(frozen=True)
@@ -82,20 +81,9 @@ def _vector(value, count: int, what: str) -> tuple[float | None, ...] | None:
     return tuple(None if v is None else float(v) for v in value)
 
 
-def _no_constant(word: str):
-    raise Rejected(f"{word} is not a number JSON allows")
-
-
 def parse(raw: str | bytes) -> XrMessage:
     """One message from the XR page, or Rejected naming what is wrong with it."""
-    if not isinstance(raw, str):
-        raise Rejected("binary frame (messages are JSON text)")
-    if len(raw.encode("utf-8", "replace")) > MAX_BYTES:
-        raise Rejected(f"message longer than {MAX_BYTES} bytes")
-    try:
-        data = json.loads(raw, parse_constant=_no_constant)
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise Rejected(f"not JSON ({exc.__class__.__name__})") from None
+    data = decode_frame(raw, MAX_BYTES)
     if not isinstance(data, dict) or data.get("type") not in FIELDS:
         raise Rejected("unknown message type")
     kind = data["type"]
