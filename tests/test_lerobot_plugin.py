@@ -9,6 +9,7 @@ module-scoped fixtures. Units: LeRobot's so101 degrees and gripper 0..100 where 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -88,6 +89,9 @@ def recorded(tmp_path_factory):
             "lerobot-record", "--robot.type=mujoco_teleop", "--robot.robot=so101", "--robot.scene=lift", "--robot.seed=0",
             f"--robot.fps={FPS}", f"--robot.cameras={','.join(CAMERAS)}", f"--robot.record_dir={tmp / 'eps'}",
             "--teleop.type=so101_leader", f"--teleop.port={leader.port}", "--teleop.id=arm", f"--teleop.calibration_dir={tmp / 'cal'}",
+            # LeRobot's default 2 retries of a read: on a loaded machine the emulator's process can miss all three
+            # ("There is no status packet!"), and lerobot-record ends
+            "--teleop.num_read_retries=10",
             "--dataset.repo_id=local/sim", f"--dataset.root={tmp / 'ds'}", "--dataset.num_episodes=2", "--dataset.episode_time_s=2",
             "--dataset.reset_time_s=0.5", f"--dataset.fps={FPS}", "--dataset.push_to_hub=false", f"--dataset.single_task={TASK}",
             "--dataset.video=false", "--display_data=false", "--play_sounds=false", cwd=tmp)
@@ -100,8 +104,10 @@ def recorded(tmp_path_factory):
             "state": np.stack(frames["observation.state"]), "stderr": result.stderr}
 
 
+@functools.cache
 def initial_observation(seed: int) -> dict:
-    """What the plugin's robot observes at `seed`'s initial state (made here, in this process)."""
+    """What the plugin's robot observes at `seed`'s initial state (made here, in this process; once a seed: a robot
+    with two cameras to build and render)."""
     import teleop.lerobot_plugin  # noqa: F401
     from lerobot.robots import RobotConfig, make_robot_from_config
 

@@ -5,7 +5,8 @@ IWER (npm `iwer` 2.5.0, `build/iwer.min.js`) is fetched by `./run.sh test` into 
 It is injected before the page loads; the tests move its controllers (`position`, `quaternion`,
 `updateButtonValue`) as an operator would and read what the session did (its status file, the saved
 episode). One served session and one page in VR are shared by the module (SwiftShader is slow on 2 cores):
-the tests run in file order on that page, each from where the last left the arm.
+the tests run in file order on that page, each from where the last left the arm; the two-arm rig's test, last,
+closes them before it opens its own (one VR page drawing at a time).
 """
 
 from __future__ import annotations
@@ -28,15 +29,38 @@ VIEWPORT = {"width": 360, "height": 180}  # the emulated headset's canvas: both 
 STEP_M = 0.005  # a hand moves in steps this long, each applied before the next (a slow page's frames come late)
 
 
+# Every requestAnimationFrame callback of the page runs EVERY (3) display frames after it was asked for, so a loop that
+# asks again each frame (IWER's device frames, hence the page's XR frames) runs at a third of the browser's 60 Hz.
+# SwiftShader's drawing is CPU the suite's other workers need (the page in VR and idle, the 2-core machine: 37 frames
+# a second uncapped took 1.05 CPU s a second of Chromium, 19 at 20 Hz 0.69; this file's run went from 133 s and 154
+# CPU s of Chromium to 70 s and 52). Nothing here counts on the rate: `Headset.frames` waits for frames by number.
+# cancelAnimationFrame still cancels, at any stage.
+EVERY = 3
+SLOWER_FRAMES = """
+(() => {
+  const raf = window.requestAnimationFrame.bind(window), caf = window.cancelAnimationFrame.bind(window);
+  const pending = new Map();
+  let last = 0;
+  const later = (id, frames, callback) => raf((t) => {
+    if (frames > 1) pending.set(id, later(id, frames - 1, callback));
+    else { pending.delete(id); callback(t); }
+  });
+  window.requestAnimationFrame = (callback) => { const id = ++last; pending.set(id, later(id, EVERY, callback)); return id; };
+  window.cancelAnimationFrame = (id) => { if (pending.has(id)) { caf(pending.get(id)); pending.delete(id); } };
+})();
+""".replace("EVERY", str(EVERY))
+
+
 def iwer_script() -> str:
-    """IWER's UMD build and its install as a Quest 3 with two eyes (window.__iwer), or an error naming the fetch."""
+    """IWER's UMD build and its install as a Quest 3 with two eyes (window.__iwer), or an error naming the fetch;
+    the page's frames slowed (SLOWER_FRAMES)."""
     cache = Path(os.environ.get("TELEOP_IWER_CACHE", Path.home() / ".cache" / "mujoco-teleop" / "iwer"))
     path = cache / IWER_VERSION / "package" / "build" / "iwer.min.js"
     if not path.is_file():
         raise FileNotFoundError(f"IWER {IWER_VERSION} (the WebXR emulator) is not at {path}: `./run.sh test` fetches it, "
                                 f"or: mkdir -p {path.parents[2]} && cd {path.parents[2]} && npm pack iwer@{IWER_VERSION} "
                                 f"&& tar xzf iwer-{IWER_VERSION}.tgz")
-    return path.read_text(encoding="utf-8") + (
+    return SLOWER_FRAMES + path.read_text(encoding="utf-8") + (
         "\n;(() => { const d = new IWER.XRDevice(IWER.metaQuest3, {stereoEnabled: true});"
         " d.installRuntime({forceInstall: true}); window.__iwer = d; })();\n")
 
@@ -93,16 +117,20 @@ class Headset:
         status = self.served.wait_for(lambda s: s["tick"] >= tick + 3, what="three ticks")  # the status file lags a tick
         return np.array([*status["target_pos"][arm], *status["target_quat"][arm]])
 
-    def _step(self, side: str, arm: int, go, back) -> None:
-        """One engaged step of the hand (`go`), applied; a step lost to a clutch let go by a late frame (the machine
-        too loaded to draw for 0.25 s: the safety rule) is done again from where it started, the clutch up."""
+    def _step(self, side: str, arm: int, go, back, before: np.ndarray | None = None) -> np.ndarray:
+        """One engaged step of the hand (`go`), applied; returns the arm's target after it. A step lost to a clutch
+        let go by a late frame (the machine too loaded to draw for 0.25 s: the safety rule) is done again from where
+        it started, the clutch up. `before`: the target the last step of this move left (the hand has not moved
+        since, so nothing else moved the target), read from the status when not given."""
         for _ in range(4):
-            before = self._target(arm)
+            if before is None:
+                before = self._target(arm)
             go()
             self.frames()
             self.applied(side)
-            if not np.allclose(self._target(arm), before, atol=1e-7):
-                return
+            after = self._target(arm)
+            if not np.allclose(after, before, atol=1e-7):
+                return after
             self.clutch(side, False)
             back()
             self.frames()
@@ -114,11 +142,12 @@ class Headset:
         """Move a controller by `delta` (m, WebXR's local-floor: -z forward) in steps of `step_m`."""
         delta = np.asarray(delta, dtype=float)
         steps = max(1, int(math.ceil(np.linalg.norm(delta) / step_m)))
+        target = None
         for _ in range(steps):
             start = self.position(side)
             go = self._setter(side, start + delta / steps)
             if engaged:
-                self._step(side, arm, go, self._setter(side, start))
+                target = self._step(side, arm, go, self._setter(side, start), target)
             else:
                 go()
                 self.frames()
@@ -136,8 +165,9 @@ class Headset:
             x, y, z = axis * math.sin(half)
             return lambda: self.page.evaluate(f"window.__iwer.controllers.{side}.quaternion.set({x}, {y}, {z}, {math.cos(half)})")
 
+        target = None
         for k in range(1, steps + 1):
-            self._step(side, arm, rotation(k), rotation(k - 1))
+            target = self._step(side, arm, rotation(k), rotation(k - 1), target)
 
     def settled(self, arm: int = 0) -> dict:
         """The status once the arm's target stays put for a few ticks."""
@@ -159,9 +189,15 @@ def served(tmp_path_factory):
     proc.stop()
 
 
+# What the one-arm headset holds open (its page in VR, its served session): the two-arm rig, last in the file,
+# closes them first, so that one VR page at a time draws (SwiftShader: a VR page keeps a core busy drawing).
+ONE_ARM: list = []
+
+
 @pytest.fixture(scope="module")
 def headset(browser, served):
     page = open_headset(browser, served.url + "/xr")
+    ONE_ARM.append((page, served))
     yield Headset(page, served)
     page.close()
 
@@ -353,6 +389,10 @@ def test_tracked_hands_pinch_the_gripper_and_a_hand_lost_mid_clutch_holds_the_ar
 
 @pytest.fixture(scope="module")
 def rig(browser, tmp_path_factory):
+    while ONE_ARM:  # page.close() and ServeProcess.stop() may be called again (the fixtures' teardown does)
+        page, served = ONE_ARM.pop()
+        page.close()
+        served.stop()
     work = tmp_path_factory.mktemp("xr-rig")
     proc = headless.ServeProcess(["--scene", "handover", "--robot", "bimanual", "--device", "gizmo"], work)
     page = open_headset(browser, proc.url + "/xr")

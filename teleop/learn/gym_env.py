@@ -132,7 +132,10 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
             raise EnvError(f"scene {scene!r} has no camera to render")
         self._next_seed = int(seed)
         self._renderer: FastRenderer | None = None
+        self._renderer_model: mujoco.MjModel | None = None  # the model the renderer has loaded
         self._load()
+        if render_mode is not None:  # the GL context (0.1-0.5 s on a CPU renderer) made with the env, not in its first episode
+            self._renderer_for_images()
         self.features, self.observation_space, self.action_space = make_spaces(
             self.session.controller, self.arms, action, self.cameras, self.image_size, self.objects
         )
@@ -175,17 +178,21 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
                                      self.session.seed)
             self._render_model = apply_looks(scene.xml, scene.assets, self.look, ranges.texture_data)
             self._render_data = mujoco.MjData(self._render_model)
-        if self._renderer is not None:
-            self._renderer.load(self._render_model)
 
     def _render_cameras(self) -> list[str]:
         extra = [self.render_camera] if self.render_mode and self.render_camera not in self.cameras else []
         return [*self.cameras, *extra]
 
     def _renderer_for_images(self) -> FastRenderer | None:
-        """The export's renderer, made on first use (a GL context costs ~0.1 s; no cameras, none)."""
+        """The export's renderer, made on first use (a GL context costs ~0.1 s; no cameras, none), with this
+        episode's model loaded when first asked for in the episode (~17 ms: an episode nobody renders, as
+        lerobot-eval's past the 10 it films, skips it)."""
         if self._renderer is None and self._render_cameras():
             self._renderer = FastRenderer(self._render_model, *self.image_size, self._render_cameras())
+            self._renderer_model = self._render_model
+        elif self._renderer is not None and self._renderer_model is not self._render_model:
+            self._renderer.load(self._render_model)
+            self._renderer_model = self._render_model
         return self._renderer
 
     def get_state(self) -> np.ndarray:
@@ -225,7 +232,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
         obs = {"observation.state": frame["observation.state"], "observation.ee_pose": frame["observation.ee_pose"]}
         if ENV_STATE in frame:
             obs[ENV_STATE] = frame[ENV_STATE]
-        renderer = self._renderer_for_images()
+        renderer = self._renderer_for_images() if self.cameras else None
         if self.cameras and self._render_data is not self._scratch:
             mujoco.mj_setState(self._render_model, self._render_data, self._state, INTEGRATION)
             mujoco.mj_forward(self._render_model, self._render_data)
@@ -287,7 +294,7 @@ class TeleopEnv(gymnasium.Env[Observation, np.ndarray]):
 
     def close(self) -> None:
         """Free the renderer's GL context (safe to call twice)."""
-        renderer, self._renderer = self._renderer, None
+        renderer, self._renderer, self._renderer_model = self._renderer, None, None
         if renderer is not None:
             renderer.close()
         super().close()

@@ -21,7 +21,8 @@ class MujocoTeleopWebConfig(TeleoperatorConfig):
     """scene / robot: the simulated arm whose IK turns the page's targets into joint targets (so101 drives a real
     SO-101 or the simulated one); fps: the page session's control rate; host / port: where the page is served
     (127.0.0.1 unless asked; port 0 picks a free one, printed on stderr); status_file: a JSON status file rewritten
-    while serving, as `teleop serve --status-file` writes it (scripts and tests read the gizmo's target there)."""
+    while serving, as `teleop serve --status-file` writes it (scripts and tests read the gizmo's target there), plus
+    `lerobot_action`: the action get_action returns now (`tick`, `values`)."""
 
     scene: str = "lift"
     robot: str = "so101"

@@ -88,12 +88,17 @@ class MujocoTeleopEnvConfig(EnvConfig):
         return {"task": self.task, "robot": self.robot, **self._options(self.render_mode)}
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
-        """{"mujoco_teleop": {0: VectorEnv}} of `n_envs` envs (not through gym.make: no gym_<type> package)."""
+        """{"mujoco_teleop": {0: VectorEnv}} of `n_envs` envs (not through gym.make: no gym_<type> package).
+
+        Each env is wrapped in LeRobot's `FreezeAfterEpisodeEnd`, as its own lazy async envs are: the vector env's
+        autoreset after an episode's last step would otherwise build the next seed's scene only for the rollout
+        to build it again at its own reset (one scene build an episode, ~50 ms, as `teleop eval` does)."""
         import gymnasium as gym
+        from lerobot.envs.utils import freeze_after_episode_end
 
         from teleop.lerobot_plugin.lerobot_env import make_lerobot_env
 
-        make_one = partial(make_lerobot_env, **self.gym_kwargs)
+        make_one = freeze_after_episode_end(partial(make_lerobot_env, **self.gym_kwargs))
         if use_async_envs and n_envs > 1:
             vec = gym.vector.AsyncVectorEnv([make_one] * n_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
                                             context="forkserver")
