@@ -66,15 +66,16 @@ class InputListener(Protocol):
     def closed(self, conn: int) -> None: ...
 
 
-class _Bucket:
-    """Token bucket: `take()` is False when a connection sends faster than RATE (beyond BURST)."""
+class TokenBucket:
+    """Per connection: `take()` is False when it sends faster than `rate` messages a second (beyond `burst`)."""
 
-    def __init__(self) -> None:
-        self.level, self.stamp = BURST, time.monotonic()
+    def __init__(self, rate: float = RATE, burst: float = BURST) -> None:
+        self.rate, self.burst = rate, burst
+        self.level, self.stamp = burst, time.monotonic()
 
     def take(self) -> bool:
         now = time.monotonic()
-        self.level = min(BURST, self.level + (now - self.stamp) * RATE)
+        self.level = min(self.burst, self.level + (now - self.stamp) * self.rate)
         self.stamp = now
         if self.level < 1.0:
             return False
@@ -82,17 +83,14 @@ class _Bucket:
         return True
 
 
-class InputChannel:
-    """Accepts page connections on PATH, validates, rate-limits and counts their messages."""
+class ChannelCounts:
+    """What a page's websocket channel counts and reports (the input channel's and the XR page's alike)."""
 
-    def __init__(self, listener: InputListener | None = None) -> None:
-        self.listener = listener
-        self.accepted = 0  # valid messages handed to the listener
+    def __init__(self) -> None:
+        self.accepted = 0  # valid messages handed on
         self.dropped = 0  # malformed, out of range, too fast or too big
         self.last_drop = ""  # why the newest dropped message was dropped (one line)
         self.connections = 0
-        self.listener_errors = 0
-        self._ids = itertools.count(1)
 
     def drop(self, reason: str) -> None:
         self.dropped += 1
@@ -101,6 +99,16 @@ class InputChannel:
     def status(self) -> dict:
         return {"connections": self.connections, "accepted": self.accepted, "dropped": self.dropped,
                 "last_drop": self.last_drop or None}
+
+
+class InputChannel(ChannelCounts):
+    """Accepts page connections on PATH, validates, rate-limits and counts their messages."""
+
+    def __init__(self, listener: InputListener | None = None) -> None:
+        super().__init__()
+        self.listener = listener
+        self.listener_errors = 0
+        self._ids = itertools.count(1)
 
     def _tell(self, method: str, *args) -> None:
         """Call the listener; its bug is counted and printed, never passed on to the page or the loop."""
@@ -123,7 +131,7 @@ class InputChannel:
         conn = next(self._ids)
         limit_message_size(connection, MAX_FRAME)  # viser lets its own socket take 50 MB; a page's keys need 512 B
         remote = connection.remote_address[0] if connection.remote_address else "?"
-        bucket = _Bucket()
+        bucket = TokenBucket()
         self._tell("opened", conn, str(remote))
         watch = asyncio.create_task(self._watch(connection, conn))
         try:

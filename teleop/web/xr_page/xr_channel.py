@@ -24,6 +24,7 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
+from teleop.web.shared.input_channel import ChannelCounts, TokenBucket
 from teleop.web.viser_internals.serving_hooks import limit_message_size
 from teleop.web.xr_page.scene_message import poses_message
 from teleop.web.xr_page.xr_device import XrDevice
@@ -50,30 +51,22 @@ class XrFrame:
     errors: np.ndarray  # each arm's IK tracking error (m)
 
 
-class XrChannel:
+class XrChannel(ChannelCounts):
     """Serves XR pages: scene, poses and status out; poses and buttons in, to `device`."""
 
     def __init__(self, device: XrDevice, scene: Callable[[int], bytes], status: Callable[[], dict] | None = None) -> None:
         self.device = device
         self.scene = scene  # generation -> the scene message of that model
         self.status_source = status
-        self.accepted = 0
-        self.dropped = 0
-        self.last_drop = ""
-        self.connections = 0
+        super().__init__()
         self.poses_sent = 0
         self._frame: XrFrame | None = None
         self._waiters: set[asyncio.Event] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()
 
-    def drop(self, reason: str) -> None:
-        self.dropped += 1
-        self.last_drop = reason
-
     def status(self) -> dict:
-        return {"connections": self.connections, "accepted": self.accepted, "dropped": self.dropped,
-                "last_drop": self.last_drop or None, "poses_sent": self.poses_sent, **self.device.status_counts()}
+        return {**super().status(), "poses_sent": self.poses_sent, **self.device.status_counts()}
 
     # -- the control loop's side ------------------------------------------------
     def tick(self, frame: XrFrame) -> None:
@@ -113,15 +106,12 @@ class XrChannel:
             self._waiters.add(wake)
         sender = asyncio.create_task(self._send(connection, wake))
         watch = asyncio.create_task(self._watch(connection))
-        level, stamp = RATE, time.monotonic()
+        bucket = TokenBucket(RATE, burst=RATE)
         try:
             async for raw in connection:
-                now = time.monotonic()
-                level, stamp = min(RATE, level + (now - stamp) * RATE), now
-                if level < 1.0:
+                if not bucket.take():
                     self.drop(f"more than {RATE:g} messages a second")
                     continue
-                level -= 1.0
                 try:
                     message = parse(raw)
                 except Rejected as exc:
