@@ -15,9 +15,7 @@ simulation stops on an error, `get_action` raises it: LeRobot's loop ends instea
 
 from __future__ import annotations
 
-import json
 import logging
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +26,7 @@ from devices.registry import SERVE_DEVICES, DeviceOptions, open_devices
 from teleop.learn.gym_env import TeleopEnv
 from teleop.lerobot_plugin.config_mujoco_teleop_web import MujocoTeleopWebConfig
 from teleop.lerobot_plugin.units import RobotUnits
-from teleop.web.session_page.app import WebApp
+from teleop.web.session_page.app import WebApp, status_text
 from teleop.web.session_page.serve_options import ServeOptions
 
 log = logging.getLogger(__name__)
@@ -120,7 +118,7 @@ class MujocoTeleopWeb(Teleoperator):
     def _status_text(self, status: dict) -> str:
         """The page's status file, with the action LeRobot reads now (`lerobot_action`: its tick and values)."""
         tick, values = self._published
-        return json.dumps({**status, "lerobot_action": {"tick": tick, "values": values}}, default=_jsonable)
+        return status_text({**status, "lerobot_action": {"tick": tick, "values": values}})
 
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         """The page takes none."""
@@ -132,11 +130,3 @@ class MujocoTeleopWeb(Teleoperator):
         app.close()
         self.env.close()
 
-
-def _jsonable(value: Any) -> Any:
-    """numpy scalars and paths in the status, as JSON."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"{type(value).__name__} is not JSON")

@@ -380,13 +380,18 @@ class WebApp:
         if self.status_file is None:
             return
         status = self.status()
-        text = json.dumps(status, default=_jsonable) if self.status_form is None else self.status_form(status)
+        text = status_text(status) if self.status_form is None else self.status_form(status)
         tmp = self.status_file.with_name(self.status_file.name + ".tmp")
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
             os.fchmod(f.fileno(), 0o600)
             f.write(text)
         os.replace(tmp, self.status_file)
+
+
+def status_text(status: dict) -> str:
+    """A status dict as the status file's JSON (numpy scalars as numbers, paths as strings)."""
+    return json.dumps(status, default=_jsonable)
 
 
 def _jsonable(value):
